@@ -1,0 +1,410 @@
+"""The differentiable view of an eye through a plate of holes onto a display.
+
+For one view pixel (a small box of view directions v) and one eye position c, the value is the mean
+over the pupil of the display radiance along each ray the eye's lens sends to that pixel, counting
+only rays that pass the same hole at both plate faces. Everything is planar, so the point where a
+ray crosses any plane is affine in (v, pupil point u): with q = 1 / focus distance (0 at
+infinity), a ray is at lateral position c + s v + (1 - s q) u at depth s below the pupil.
+
+For each hole, with the crossing point x_b at the bottom face as the variable, the rays that pass
+form the intersection of three disks: the hole at the bottom face, the hole at the top face mapped
+to the bottom face, and the pupil mapped to the bottom face. The model integrates each in closed
+form (two-disk lens area, pupil clipping at the lens) and takes the display radiance as its mean
+over the window those rays see, which is the lens mapped affinely onto the display. That mean comes
+from a stack of the display pre-filtered by the exact pixel / view-pixel / window kernels at a few
+window radii, sampled trilinearly (position, radius). So a hole is a hole: it shows a window of
+the display the size of the hole, displaced with the hole, never its cell's light smeared.
+
+Neglected (stated in docs/model.md): diffraction (see validation), the lens window's shape beyond
+its area and centre (an equal-area disk stands in for the two-disk lens), the pupil's curvature
+across one hole, light scattered or reflected by the hole walls and plate surfaces, display
+angular emission falloff (Lambertian), the eye's aberrations and Stiles-Crawford effect.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from aperture_fab.scene import Scene
+
+__all__ = ["Renderer", "render_open"]
+
+#: Display-pixel spacing of the blur-stack radius levels (finer levels, smaller interpolation error).
+LEVEL_SPACING_PX = 0.5
+MAX_LEVELS = 24
+#: Quadrature points over a window disk when building the blur kernels.
+DISK_RINGS = 24
+DISK_SPOKES = 48
+#: (view pixel, hole) pairs evaluated at once; bounds memory to a few hundred MB.
+DEFAULT_CHUNK_PAIRS = 1_500_000
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class _Optics:
+    """Distances and the affine maps between planes, all in mm (see module docstring)."""
+
+    s_bottom: float  # pupil to the plate's bottom face
+    s_top: float  # pupil to the plate's top face
+    s_display: float  # pupil to the display
+    beta_bottom: float  # 1 - s q at each plane
+    beta_top: float
+    beta_display: float
+
+    @classmethod
+    def of(cls, scene: Scene) -> _Optics:
+        q = 0.0 if scene.eye.focus_mm is None else 1.0 / scene.eye.focus_mm
+        s_b, s_t, s_d = scene.plate_distance_mm, scene.eye.eye_relief_mm, scene.display_distance_mm
+        return cls(s_b, s_t, s_d, 1 - s_b * q, 1 - s_t * q, 1 - s_d * q)
+
+    @property
+    def top_to_bottom(self) -> float:
+        """Scale from a top-face offset to the matching bottom-face offset (same pupil point)."""
+        return self.beta_bottom / self.beta_top
+
+    @property
+    def window_scale(self) -> float:
+        """Scale from bottom-face offsets to display offsets for rays of one view direction."""
+        return self.beta_display / self.beta_bottom
+
+    @property
+    def window_rate(self) -> float:
+        """How fast (mm per unit tan) the display window moves as the view direction changes."""
+        mu = self.window_scale
+        lens_rate = 0.5 * (self.s_bottom - self.top_to_bottom * self.s_top)
+        return abs(self.s_display - mu * self.s_bottom + mu * lens_rate)
+
+
+def _trapezoid(offset_mm: np.ndarray, pixel_mm: float, box_mm: float) -> np.ndarray:
+    """Fraction of a box of width box_mm, centred at offset, that falls in a pixel at 0."""
+    if box_mm <= 0:
+        return (np.abs(offset_mm) < pixel_mm / 2).astype(np.float64)
+    lo = np.maximum(offset_mm - box_mm / 2, -pixel_mm / 2)
+    hi = np.minimum(offset_mm + box_mm / 2, pixel_mm / 2)
+    return np.clip(hi - lo, 0, None) / box_mm
+
+
+def _window_kernels(
+    pixel_mm: tuple[float, float], box_mm: tuple[float, float], radii_mm: np.ndarray
+) -> np.ndarray:
+    """Weights (L, 2k+1, 2k+1) of display pixels around a sample point at a pixel centre.
+
+    Level l is the mean over a disk of radius radii_mm[l], smeared by the view pixel's box, of a
+    display that is constant over each pixel. Rows run toward -y like images; the kernels are
+    symmetric so the sign does not matter.
+    """
+    wx, wy = pixel_mm
+    reach = float(radii_mm.max()) + max(box_mm) / 2
+    k = int(math.ceil(reach / min(wx, wy) + 1))
+    off = np.arange(-k, k + 1)
+    # Disk quadrature: equal-area rings, uniform spokes.
+    rings = np.sqrt((np.arange(DISK_RINGS) + 0.5) / DISK_RINGS)
+    angles = 2 * np.pi * (np.arange(DISK_SPOKES) + 0.5) / DISK_SPOKES
+    unit = np.stack([np.outer(rings, np.cos(angles)).ravel(), np.outer(rings, np.sin(angles)).ravel()])
+    kernels = []
+    for radius in radii_mm:
+        points = unit * radius if radius > 0 else np.zeros((2, 1))
+        tx = _trapezoid(off[:, None] * wx - points[0][None, :], wx, box_mm[0])  # (2k+1, P)
+        ty = _trapezoid(off[:, None] * wy - points[1][None, :], wy, box_mm[1])
+        kernel = ty @ tx.T / points.shape[1]  # (rows, cols)
+        kernels.append(kernel / kernel.sum())
+    return np.stack(kernels)
+
+
+@dataclass(frozen=True)
+class _Pairs:
+    """The (view pixel, hole) pairs that can carry light for one eye position, packed (N, S).
+
+    Everything here is independent of the hole radii and the display content: the lens centre is
+    taken midway between its two disks' centres, exact for equal radii (infinite focus) and off by
+    at most |1 - m| r / 2 otherwise (m: top-face radius scale, within a few % of 1).
+    """
+
+    hole: torch.Tensor  # (N, S) int64 flat cell index; the extra last index is a closed cell
+    lens_offset_mm: torch.Tensor  # (N, S) centre distance of the lens's two disks
+    pupil_offset_mm: torch.Tensor  # (N, S) lens centre to the pupil footprint's centre
+    grid_xy: torch.Tensor  # (N, S, 2) normalized display sample point of the lens centre
+
+
+class _PairWeights(torch.autograd.Function):
+    """Per (view pixel, hole) pair: the pupil share of the rays that pass the hole, and the
+    blur-stack coordinate of its display window, from the hole radii. Fused, with a hand-written
+    backward, because this runs on millions of pairs per view."""
+
+    @staticmethod
+    def forward(ctx, radius, hole, lens_offset, pupil_offset, top_scale, pupil_r, level_scale):  # type: ignore[no-untyped-def]
+        r1 = radius[hole]
+        r2 = r1 * top_scale
+        d = lens_offset
+        inside = d <= (r1 - r2).abs()
+        partial = (d < r1 + r2) & ~inside
+        d_s = d.clamp_min(_EPS)
+        c1 = ((d_s**2 + r1**2 - r2**2) / (2 * d_s * r1)).clamp(-1, 1)
+        c2 = ((d_s**2 + r2**2 - r1**2) / (2 * d_s * r2)).clamp(-1, 1)
+        t1, t2 = torch.acos(c1), torch.acos(c2)
+        kite = (r1 * torch.sin(t1)) * d_s  # half-chord times centre distance
+        small = torch.minimum(r1, r2)
+        area = torch.where(partial, r1**2 * t1 + r2**2 * t2 - kite,
+                           torch.where(inside, math.pi * small**2, torch.zeros_like(r1)))
+        # dA/dr1 = 2 r1 theta1, dA/dr2 = 2 r2 theta2, and r2 = top_scale * r1.
+        darea = torch.where(partial, 2 * r1 * t1 + 2 * top_scale * r2 * t2,
+                            torch.where(inside, 2 * math.pi * small**2 / r1, torch.zeros_like(r1)))
+        # Pupil clipping: share of an equal-area disk inside the pupil's (locally straight) edge.
+        lens_r = (area / math.pi).clamp_min(_EPS).sqrt()
+        x = (pupil_r - pupil_offset) / lens_r
+        cut = x.abs() < 1
+        xs = torch.where(cut, x, torch.zeros_like(x))
+        root = (1 - xs**2).clamp_min(0).sqrt()
+        share = torch.where(cut, 0.5 + (torch.asin(xs) + xs * root) / math.pi, (x >= 1).to(x.dtype))
+        norm = 1 / (math.pi * pupil_r**2)
+        weight = area * share * norm
+        level = (2 * level_scale * area - 1).clamp(-1, 1)
+        ctx.save_for_backward(hole, darea * (share - xs * root / math.pi) * norm,
+                              darea * (2 * level_scale) * (level.abs() < 1))
+        ctx.cells = radius.shape[0]
+        return weight, level
+
+    @staticmethod
+    def backward(ctx, grad_weight, grad_level):  # type: ignore[no-untyped-def]
+        hole, dweight, dlevel = ctx.saved_tensors
+        grad_r = grad_weight * dweight + grad_level * dlevel
+        grad_radius = torch.zeros(ctx.cells, dtype=grad_r.dtype, device=grad_r.device)
+        grad_radius.index_add_(0, hole.reshape(-1), grad_r.reshape(-1))
+        return grad_radius, None, None, None, None, None, None
+
+
+class Renderer:
+    """Renders views of one scene; caches its geometry. Differentiable in the open-area fractions
+    and the display content.
+
+    scene: the scene; device, dtype: where and how to compute; chunk_pairs: memory bound (pairs
+    evaluated at once).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+        chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+    ) -> None:
+        self.scene = scene
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.chunk_pairs = chunk_pairs
+        self.optics = opt = _Optics.of(scene)
+        plate, eye, display = scene.plate, scene.eye, scene.display
+
+        # Radius levels of the display window (mm on the display), uniform in radius squared.
+        self.window_max_mm = abs(opt.window_scale) * plate.max_radius_mm
+        pixel_mm = display.pixel_mm
+        levels = math.ceil(self.window_max_mm / (LEVEL_SPACING_PX * min(pixel_mm))) + 1
+        levels = min(MAX_LEVELS, max(2, levels))
+        radii = self.window_max_mm * np.sqrt(np.linspace(0, 1, levels))
+        step = eye.view_step
+        box = (opt.window_rate * step[0], opt.window_rate * step[1])
+        kernels = _window_kernels(pixel_mm, box, radii)
+        self.kernel_size = kernels.shape[-1]
+        self.pad = self.kernel_size // 2 + 1
+        ny, nx = display.pixels[1] + 2 * self.pad, display.pixels[0] + 2 * self.pad
+        self._fft_shape = (ny + self.kernel_size - 1, nx + self.kernel_size - 1)
+        k = torch.as_tensor(kernels, dtype=dtype, device=self.device)
+        self._kernel_spectrum = torch.fft.rfft2(k, s=self._fft_shape)
+        self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
+        self._pairs: dict[int, _Pairs] = {}
+
+    @property
+    def _axis_length(self) -> float:
+        """Plate mid-thickness to the pupil: the length of a chief-ray hole axis."""
+        return self.scene.eye.eye_relief_mm + self.scene.plate.thickness_mm / 2
+
+    def pair_count(self, position: int = 0) -> int:
+        return int(self._pair_table(position).hole.numel())
+
+    # -- display ------------------------------------------------------------------------------
+
+    def display_stack(self, display: torch.Tensor) -> torch.Tensor:
+        """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W')."""
+        d = F.pad(display.to(self.device, self.dtype), (self.pad,) * 4)
+        spectrum = torch.fft.rfft2(d, s=self._fft_shape)  # (C, ., .)
+        full = torch.fft.irfft2(spectrum[:, None] * self._kernel_spectrum[None], s=self._fft_shape)
+        c = self.kernel_size // 2
+        return full[:, :, c : c + d.shape[-2], c : c + d.shape[-1]].unsqueeze(0)
+
+    # -- geometry -----------------------------------------------------------------------------
+
+    def _pair_table(self, position: int) -> _Pairs:
+        if position not in self._pairs:
+            with torch.no_grad():
+                self._pairs[position] = self._build_pairs(position)
+        return self._pairs[position]
+
+    def _build_pairs(self, position: int) -> _Pairs:
+        scene, opt = self.scene, self.optics
+        plate, eye = scene.plate, scene.eye
+        px, py = plate.pitch_mm
+        ncx, ncy = plate.cells
+        t = plate.thickness_mm
+        r_max = plate.max_radius_mm
+        cx, cy = eye.positions_mm[position]
+        dt = torch.float64  # geometry in double, stored in the working dtype
+        vx, vy = eye.view_directions()
+        gy, gx = np.meshgrid(vy, vx, indexing="ij")
+        views = torch.as_tensor(np.stack([gx.ravel(), gy.ravel()], 1), dtype=dt,
+                                device=self.device)
+        # Holes whose bottom disk can reach the pupil footprint (bottom face, radius R_b).
+        keep_within = self.pupil_bottom_mm + 2 * r_max + 1e-9
+        tilt_room = 0.0
+        if plate.hole_axis == "chief_ray":
+            half = math.hypot(plate.size_mm[0] / 2 + abs(eye.positions_mm[0][0]),
+                              plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
+            tilt_room = t / 2 * half / self._axis_length
+        reach = keep_within + tilt_room
+        nsx = min(ncx, math.floor(2 * reach / px) + 2)
+        nsy = min(ncy, math.floor(2 * reach / py) + 2)
+        oy, ox = torch.meshgrid(torch.arange(nsy, device=self.device),
+                                torch.arange(nsx, device=self.device), indexing="ij")
+        oy, ox = oy.reshape(1, -1), ox.reshape(1, -1)
+        per_chunk = max(1, self.chunk_pairs // (nsx * nsy))
+        parts: list[list[torch.Tensor]] = []
+        for start in range(0, views.shape[0], per_chunk):
+            v = views[start : start + per_chunk]
+            fx = cx + opt.s_bottom * v[:, :1]
+            fy = cy + opt.s_bottom * v[:, 1:]
+            rows = torch.ceil((ncy - 1) / 2 - (fy + reach) / py).long() + oy
+            cols = torch.ceil((fx - reach) / px + (ncx - 1) / 2).long() + ox
+            hx = (cols - (ncx - 1) / 2).to(dt) * px  # hole axis at mid-thickness
+            hy = ((ncy - 1) / 2 - rows).to(dt) * py
+            if plate.hole_axis == "chief_ray":
+                ex, ey = eye.positions_mm[0]
+                ax, ay = (ex - hx) / self._axis_length, (ey - hy) / self._axis_length
+            else:
+                ax = ay = torch.zeros_like(hx)
+            bx, by = hx - t / 2 * ax, hy - t / 2 * ay  # bottom-face centre
+            tx, ty = hx + t / 2 * ax, hy + t / 2 * ay  # top-face centre
+            keep = (rows >= 0) & (rows < ncy) & (cols >= 0) & (cols < ncx)
+            keep &= (bx - fx) ** 2 + (by - fy) ** 2 < keep_within**2
+            # Top-face disk mapped to the bottom face, for this view direction.
+            m = opt.top_to_bottom
+            ctx = fx + m * (tx - cx - opt.s_top * v[:, :1])
+            cty = fy + m * (ty - cy - opt.s_top * v[:, 1:])
+            dx, dy = ctx - bx, cty - by
+            dist = (dx**2 + dy**2).sqrt()
+            # Lens centre midway between the two disks; its offset from the footprint centre.
+            lx, ly = (bx + ctx) / 2, (by + cty) / 2
+            pupil_off = ((lx - fx) ** 2 + (ly - fy) ** 2).sqrt()
+            mu = opt.window_scale
+            wx = cx + opt.s_display * v[:, :1] + mu * (lx - fx)
+            wy = cy + opt.s_display * v[:, 1:] + mu * (ly - fy)
+            gx, gy = self._normalize(wx, wy)
+            hole = torch.where(keep, rows.clamp(0, ncy - 1) * ncx + cols.clamp(0, ncx - 1),
+                               ncx * ncy)
+            # Pack the kept pairs to the front of each row.
+            order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
+            fields = [hole, dist, pupil_off, gx, gy]
+            parts.append([f.gather(1, order) for f in fields] + [keep.sum(1)])
+        width = max(1, int(max(int(p[-1].max()) for p in parts)))
+        cat = [torch.cat([p[i][:, :width] for p in parts]) for i in range(5)]
+        return _Pairs(
+            hole=cat[0],
+            lens_offset_mm=cat[1].to(self.dtype),
+            pupil_offset_mm=cat[2].to(self.dtype),
+            grid_xy=torch.stack([cat[3], cat[4]], -1).to(self.dtype),
+        )
+
+    def _normalize(self, x_mm: torch.Tensor, y_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        display = self.scene.display
+        width = display.pixels[0] + 2 * self.pad
+        height = display.pixels[1] + 2 * self.pad
+        col = (x_mm + display.width_mm / 2) / display.pixel_mm[0] - 0.5 + self.pad
+        row = (display.height_mm / 2 - y_mm) / display.pixel_mm[1] - 0.5 + self.pad
+        return 2 * col / (width - 1) - 1, 2 * row / (height - 1) - 1
+
+    # -- rendering ----------------------------------------------------------------------------
+
+    def render(self, open_fraction: torch.Tensor, display: torch.Tensor, position: int = 0
+               ) -> torch.Tensor:
+        """View (C, ny, nx) through holes of open-area fractions (rows, cols) onto a display
+        (C, H, W) in linear light, from eye position `position` of the scene's eyebox."""
+        return self.render_stack(open_fraction, self.display_stack(display), position)
+
+    def render_stack(self, open_fraction: torch.Tensor, stack: torch.Tensor, position: int = 0
+                     ) -> torch.Tensor:
+        """As `render`, with the display already pre-filtered by `display_stack`."""
+        scene = self.scene
+        cells = (scene.plate.cells[1], scene.plate.cells[0])
+        if tuple(open_fraction.shape) != cells:
+            raise ValueError(
+                f"open_fraction has shape {tuple(open_fraction.shape)}; the plate has "
+                f"(rows, cols) = {cells}."
+            )
+        a = open_fraction.to(self.device, self.dtype).reshape(-1).clamp_min(0)
+        px, py = scene.plate.pitch_mm
+        # Radius per cell, plus a closed cell for padding.
+        radius = torch.cat([a * (px * py / math.pi), a.new_zeros(1)]).add(_EPS).sqrt()
+        pairs = self._pair_table(position)
+        rows_per_chunk = max(1, self.chunk_pairs // max(1, pairs.hole.shape[1]))
+        out = []
+        for start in range(0, pairs.hole.shape[0], rows_per_chunk):
+            sl = slice(start, start + rows_per_chunk)
+            out.append(self._render_rows(radius, stack, pairs, sl))
+        view = torch.cat(out, dim=1)
+        return view.reshape(view.shape[0], scene.eye.view_pixels[1], scene.eye.view_pixels[0])
+
+    def _render_rows(self, radius: torch.Tensor, stack: torch.Tensor, pairs: _Pairs,
+                     sl: slice) -> torch.Tensor:
+        opt = self.optics
+        window_max2 = max(self.window_max_mm**2, _EPS)
+        weight, level = _PairWeights.apply(
+            radius, pairs.hole[sl], pairs.lens_offset_mm[sl], pairs.pupil_offset_mm[sl],
+            abs(opt.top_to_bottom), self.pupil_bottom_mm,
+            opt.window_scale**2 / math.pi / window_max2,
+        )
+        grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
+        samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=True)[0, :, 0]  # (C, n, S)
+        return (samples * weight).sum(-1)
+
+
+def render_open(
+    scene: Scene,
+    display: torch.Tensor,
+    position: int = 0,
+    pupil_samples: int = 256,
+    subpixels: int = 2,
+) -> torch.Tensor:
+    """View (C, ny, nx) of the display with no plate, by quadrature over the pupil (a sunflower
+    pattern of `pupil_samples` points) and `subpixels`^2 points per view pixel."""
+    eye, disp = scene.eye, scene.display
+    opt = _Optics.of(scene)
+    dev, dtype = display.device, display.dtype
+    cx, cy = eye.positions_mm[position]
+    spread = eye.pupil_mm / 2 * abs(opt.beta_display)
+    n = pupil_samples if spread > 1e-3 * min(disp.pixel_mm) else 1
+    k = np.arange(n) + 0.5
+    golden = math.pi * (3 - math.sqrt(5))
+    u = np.sqrt(k / n) * spread
+    pupil = np.stack([u * np.cos(golden * k), u * np.sin(golden * k)], 1)
+    step = eye.view_step
+    sub = (np.arange(subpixels) + 0.5) / subpixels - 0.5
+    vx, vy = eye.view_directions()
+    gx = (vx[None, :, None] + sub[None, None, :] * step[0])  # (1, nx, s)
+    gy = (vy[:, None, None] - sub[None, None, :] * step[1])  # (ny, 1, s)
+    # Display points: (ny, nx, s, s, n)
+    x = cx + opt.s_display * gx[:, :, None, :, None] + pupil[:, 0]
+    y = cy + opt.s_display * gy[:, :, :, None, None] + pupil[:, 1]
+    x = np.broadcast_to(x, np.broadcast_shapes(x.shape, y.shape))
+    y = np.broadcast_to(y, x.shape)
+    col = (x + disp.width_mm / 2) / disp.pixel_mm[0] - 0.5
+    row = (disp.height_mm / 2 - y) / disp.pixel_mm[1] - 0.5
+    grid = np.stack([2 * (col + 0.5) / disp.pixels[0] - 1, 2 * (row + 0.5) / disp.pixels[1] - 1], -1)
+    ny, nx = grid.shape[:2]
+    g = torch.as_tensor(grid.reshape(1, ny * nx, -1, 2), dtype=dtype, device=dev)
+    out = F.grid_sample(display.unsqueeze(0), g, mode="bilinear", padding_mode="zeros",
+                        align_corners=False)
+    return out[0].mean(-1).reshape(display.shape[0], ny, nx)

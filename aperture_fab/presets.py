@@ -1,0 +1,180 @@
+"""Named starting points for a configuration, as plain nested dicts in the TOML file's shape.
+
+Every preset gives every key of the four sections ([display], [plate], [eye], [optimizer]), so a
+user file only states what differs. `aperture_fab.config.resolve` turns a preset, a file and
+command-line overrides into checked dataclasses.
+
+Why the "near-eye" numbers (the default):
+
+- display 20 x 20 mm at 400 x 400 pixels: 50 um pixels, like a ~500 ppi phone panel, and a patch
+  of it about as wide as the field a pinhole plate 1 cm away can usefully show;
+- gap 10 mm: a slim device, and a pinhole height at which the best single hole is about 0.1 mm
+  across (sqrt(2 lambda h) at 550 nm), so diffraction and geometric blur are balanced;
+- cells 80 x 80 at 0.25 mm pitch: the plate covers the display, and a cell spans about 5 display
+  pixels, so each hole has its own small window of content to show;
+- thickness 0.3 mm: printable and stiff on an MSLA resin printer; chief-ray holes keep the
+  oblique bundles from being clipped by the walls of a plate that thick;
+- pupil 4 mm: an indoor pupil; eye relief 10 mm: close, like glasses on the nose;
+- view 128 x 128 over the field the display subtends (about 52 deg): about 0.4 deg per view
+  pixel, finer than the geometric blur of a hole (about 2r / h ~ 0.6 deg), so the model resolves it;
+- Adam at 0.05 with a cosine decay over 300 iterations from a regular pinhole array, stopping
+  after 60 iterations without progress: converges in a few minutes on a CPU.
+
+The "seed" preset is the 2022 dissertation's setting: a 28 x 28 aperture 1 cm from a 10 x 15 mm
+source showing the target, SGD (lr 0.8, momentum 0.9) for 300 epochs from a random mask.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from aperture_fab.scene import Display, display_fov_deg
+
+__all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_DESCRIPTIONS", "preset_summary"]
+
+DEFAULT_PRESET = "near-eye"
+
+_SEED_WIDTH_MM = 10.0
+_SEED_HEIGHT_MM = 15.0
+_SEED_CELLS = 28
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "near-eye": {
+        "display": {"width_mm": 20.0, "height_mm": 20.0, "pixels": [400, 400]},
+        "plate": {
+            "cells": [80, 80],
+            "pitch_mm": [0.25, 0.25],
+            "gap_mm": 10.0,
+            "thickness_mm": 0.3,
+            "hole_axis": "chief_ray",
+        },
+        "eye": {
+            "pupil_mm": 4.0,
+            "eye_relief_mm": 10.0,
+            "focus_mm": "infinity",
+            "fov_deg": "display",
+            "view_pixels": [128, 128],
+            "positions_mm": [[0.0, 0.0]],
+            "weights": [1.0],
+        },
+        "optimizer": {
+            "method": "adam",
+            "learning_rate": 0.05,
+            "momentum": 0.9,  # unused by Adam; kept so a switch to SGD has a sensible value
+            "iterations": 300,
+            "schedule": "cosine",
+            "init": "pinholes",
+            "display": "optimized",
+            "efficiency_weight": 0.0,
+            "plateau_patience": 60,
+            "plateau_tolerance": 1e-4,
+            "seed": 0,
+            "precision": "float32",
+            "device": "auto",
+            "checkpoint_every": 50,
+        },
+    },
+    "seed": {
+        "display": {
+            "width_mm": _SEED_WIDTH_MM,
+            "height_mm": _SEED_HEIGHT_MM,
+            "pixels": [_SEED_CELLS, _SEED_CELLS],
+        },
+        "plate": {
+            "cells": [_SEED_CELLS, _SEED_CELLS],
+            # The aperture covers the source exactly: one cell per source pixel.
+            "pitch_mm": [_SEED_WIDTH_MM / _SEED_CELLS, _SEED_HEIGHT_MM / _SEED_CELLS],
+            "gap_mm": 10.0,
+            "thickness_mm": 0.2,
+            "hole_axis": "straight",
+        },
+        "eye": {
+            "pupil_mm": 4.0,
+            "eye_relief_mm": 10.0,
+            "focus_mm": "infinity",
+            "fov_deg": "display",
+            "view_pixels": [_SEED_CELLS, _SEED_CELLS],
+            "positions_mm": [[0.0, 0.0]],
+            "weights": [1.0],
+        },
+        "optimizer": {
+            "method": "sgd",
+            "learning_rate": 0.8,
+            "momentum": 0.9,
+            "iterations": 300,
+            "schedule": "constant",
+            "init": "random",
+            "display": "target",
+            "efficiency_weight": 0.0,
+            "plateau_patience": 0,  # the dissertation always ran all 300 epochs
+            "plateau_tolerance": 1e-4,
+            "seed": 0,
+            "precision": "float32",
+            "device": "auto",
+            "checkpoint_every": 50,
+        },
+    },
+}
+
+PRESET_DESCRIPTIONS: dict[str, str] = {
+    "near-eye": "Slim near-eye display: 20 mm, 500 ppi panel, 0.25 mm cells 10 mm in front, "
+    "Adam, display content optimized (default).",
+    "seed": "The 2022 dissertation's setting: 28 x 28 aperture 10 mm from a 10 x 15 mm source "
+    "showing the target, SGD lr 0.8 momentum 0.9, 300 epochs from a random mask.",
+}
+
+
+def _check_name(name: str) -> dict[str, Any]:
+    if name not in PRESETS:
+        raise ValueError(
+            f"preset = {name!r} is not a known preset; choose one of {', '.join(PRESETS)}."
+        )
+    return PRESETS[name]
+
+
+def _mm(value: float) -> str:
+    return f"{value:.4g}"
+
+
+def preset_summary(name: str) -> str:
+    """A few lines with a preset's key numbers, for `aperture-fab presets`."""
+    preset = _check_name(name)
+    disp, plate, eye, opt = (preset[s] for s in ("display", "plate", "eye", "optimizer"))
+    display = Display(disp["width_mm"], disp["height_mm"], tuple(disp["pixels"]))
+    pitch = plate["pitch_mm"]
+    pitch_x, pitch_y = (pitch, pitch) if isinstance(pitch, (int, float)) else pitch
+    view_x, view_y = eye["view_pixels"]
+    distance_mm = eye["eye_relief_mm"] + plate["thickness_mm"] + plate["gap_mm"]
+    if eye["fov_deg"] == "display":
+        fov_x, fov_y = display_fov_deg(display, distance_mm)
+        fov = f"the display's field, {fov_x:.1f} x {fov_y:.1f} deg"
+    else:
+        fov_x, fov_y = eye["fov_deg"]
+        fov = f"{fov_x:.1f} x {fov_y:.1f} deg"
+    focus = eye["focus_mm"] if isinstance(eye["focus_mm"], str) else f"{eye['focus_mm']} mm"
+    pixel_x_um, pixel_y_um = (1000 * p for p in display.pixel_mm)
+    stop = (
+        f"stop after {opt['plateau_patience']} iterations without progress"
+        if opt["plateau_patience"] > 0 else "no early stop"
+    )
+    hole_window_px = pitch_x / display.pixel_mm[0]
+    lines = [
+        f"{name}: {PRESET_DESCRIPTIONS[name]}",
+        f"  display    {_mm(disp['width_mm'])} x {_mm(disp['height_mm'])} mm, "
+        f"{disp['pixels'][0]} x {disp['pixels'][1]} pixels "
+        f"({pixel_x_um:.3g} x {pixel_y_um:.3g} um)",
+        f"  plate      {plate['cells'][0]} x {plate['cells'][1]} cells, pitch "
+        f"{_mm(pitch_x)} x {_mm(pitch_y)} mm (~{hole_window_px:.3g} display pixels), "
+        f"gap {_mm(plate['gap_mm'])} mm, thickness {_mm(plate['thickness_mm'])} mm, "
+        f"{plate['hole_axis']} holes",
+        f"  eye        pupil {_mm(eye['pupil_mm'])} mm, eye relief {_mm(eye['eye_relief_mm'])} mm, "
+        f"focus {focus}, display {_mm(distance_mm)} mm from the pupil, "
+        f"{len(eye['positions_mm'])} position(s)",
+        f"  view       {view_x} x {view_y} pixels over {fov} "
+        f"({fov_x / view_x:.2f} x {fov_y / view_y:.2f} deg per pixel)",
+        f"  optimizer  {opt['method']} lr {opt['learning_rate']:g}"
+        + (f" momentum {opt['momentum']:g}" if opt["method"] == "sgd" else "")
+        + f", {opt['iterations']} iterations, {opt['schedule']} schedule, {stop}, "
+        f"init {opt['init']}, display {opt['display']}",
+    ]
+    return "\n".join(lines)

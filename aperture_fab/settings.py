@@ -1,0 +1,105 @@
+"""Optimizer settings: what is optimized, how, and for how long."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from aperture_fab.scene import check_positive
+
+__all__ = ["Method", "Schedule", "Init", "DisplayMode", "Precision", "OptimizerSettings"]
+
+Method = Literal["adam", "sgd"]
+Schedule = Literal["constant", "cosine"]
+Init = Literal["pinholes", "random", "uniform"]
+DisplayMode = Literal["optimized", "target"]
+Precision = Literal["float32", "float64"]
+
+METHODS: tuple[Method, ...] = ("adam", "sgd")
+SCHEDULES: tuple[Schedule, ...] = ("constant", "cosine")
+INITS: tuple[Init, ...] = ("pinholes", "random", "uniform")
+DISPLAY_MODES: tuple[DisplayMode, ...] = ("optimized", "target")
+PRECISIONS: tuple[Precision, ...] = ("float32", "float64")
+
+MAX_ITERATIONS = 1_000_000
+
+
+def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} = {value!r} is not allowed; choose one of {', '.join(allowed)}.")
+
+
+@dataclass(frozen=True)
+class OptimizerSettings:
+    """How the plate (and display content) are optimized.
+
+    method: "adam" (default) or "sgd" with momentum (the seed preset).
+    learning_rate: step size on the unconstrained parameters (logits).
+    momentum: SGD momentum (ignored by Adam).
+    iterations: most iterations to run.
+    schedule: learning-rate schedule, "cosine" decays to 5 % at the end.
+    init: "pinholes" (a regular pinhole array of good size and pitch), "random" (uniform random
+        mask, the dissertation's start) or "uniform" (every hole half open).
+    display: "optimized" (display content optimized with the plate) or "target" (shown as is).
+    efficiency_weight: weight of the light-efficiency term (0 ignores the light level).
+    plateau_patience: stop when the loss has not improved by plateau_tolerance (relative) for
+        this many iterations; 0 never stops early.
+    plateau_tolerance: relative improvement that counts as progress.
+    seed: random seed for initialization.
+    precision: "float32" or "float64".
+    device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N".
+    checkpoint_every: iterations between checkpoints in a file-backed run.
+    """
+
+    method: Method = "adam"
+    learning_rate: float = 0.05
+    momentum: float = 0.9
+    iterations: int = 300
+    schedule: Schedule = "cosine"
+    init: Init = "pinholes"
+    display: DisplayMode = "optimized"
+    efficiency_weight: float = 0.0
+    plateau_patience: int = 60
+    plateau_tolerance: float = 1e-4
+    seed: int = 0
+    precision: Precision = "float32"
+    device: str = "auto"
+    checkpoint_every: int = 50
+
+    def __post_init__(self) -> None:
+        _check_choice("optimizer.method", self.method, METHODS)
+        _check_choice("optimizer.schedule", self.schedule, SCHEDULES)
+        _check_choice("optimizer.init", self.init, INITS)
+        _check_choice("optimizer.display", self.display, DISPLAY_MODES)
+        _check_choice("optimizer.precision", self.precision, PRECISIONS)
+        check_positive("optimizer.learning_rate", self.learning_rate,
+                       "Typical: 0.01 to 0.1 for Adam, 0.1 to 1 for SGD.", 100.0)
+        if not (math.isfinite(self.momentum) and 0 <= self.momentum < 1):
+            raise ValueError(
+                f"optimizer.momentum = {self.momentum!r} is out of range; allowed: 0 <= momentum < 1."
+            )
+        for name, value, low in (
+            ("optimizer.iterations", self.iterations, 1),
+            ("optimizer.plateau_patience", self.plateau_patience, 0),
+            ("optimizer.checkpoint_every", self.checkpoint_every, 1),
+            ("optimizer.seed", self.seed, 0),
+        ):
+            if not (isinstance(value, int) and not isinstance(value, bool)):
+                raise TypeError(f"{name} must be a whole number, got {value!r}")
+            if not low <= value <= MAX_ITERATIONS * (2**31 if name.endswith("seed") else 1):
+                raise ValueError(f"{name} = {value} is out of range; allowed: >= {low}.")
+        if not (math.isfinite(self.efficiency_weight) and self.efficiency_weight >= 0):
+            raise ValueError(
+                f"optimizer.efficiency_weight = {self.efficiency_weight!r} must be >= 0 "
+                "(0 ignores the light level)."
+            )
+        if not (math.isfinite(self.plateau_tolerance) and 0 <= self.plateau_tolerance < 1):
+            raise ValueError(
+                f"optimizer.plateau_tolerance = {self.plateau_tolerance!r} is out of range; "
+                "allowed: 0 <= tolerance < 1."
+            )
+        if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
+            raise ValueError(
+                f"optimizer.device = {self.device!r} is not allowed; use auto, cpu, cuda or cuda:N."
+            )

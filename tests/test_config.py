@@ -1,0 +1,298 @@
+"""Configuration: presets, layering, TOML round trips and error messages."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import json
+import math
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from aperture_fab.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.presets import DEFAULT_PRESET, PRESET_DESCRIPTIONS, PRESETS, preset_summary
+from aperture_fab.scene import Display, Eye, Plate
+from aperture_fab.settings import OptimizerSettings
+
+
+def full_fov_deg(size_mm: float, distance_mm: float) -> float:
+    """Full angle a centred width subtends at a distance (independent of scene.py)."""
+    return 2 * math.degrees(math.atan2(size_mm / 2, distance_mm))
+
+
+def round_trip(config: Config) -> Config:
+    return resolve(file_dict=parse_toml(to_toml(config), "round-trip.toml"))
+
+
+# --- presets ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_every_preset_resolves_and_gives_every_key(name: str) -> None:
+    for section, keys in SECTION_KEYS.items():
+        assert set(PRESETS[name][section]) == set(keys)
+    config = resolve(name)
+    assert config.preset == name
+    assert isinstance(config.optimizer, OptimizerSettings)
+    assert config.extra == {}
+    assert name in PRESET_DESCRIPTIONS
+
+
+def test_section_keys_match_the_dataclass_fields() -> None:
+    for section, cls in (("display", Display), ("plate", Plate), ("eye", Eye),
+                         ("optimizer", OptimizerSettings)):
+        assert set(SECTION_KEYS[section]) == {f.name for f in dataclasses.fields(cls)}
+
+
+def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
+    config = resolve()
+    assert config.preset == DEFAULT_PRESET == "near-eye"
+    display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
+    assert (display.width_mm, display.height_mm, display.pixels) == (20.0, 20.0, (400, 400))
+    assert display.pixel_mm == pytest.approx((0.05, 0.05))
+    assert (plate.cells, plate.pitch_mm, plate.gap_mm, plate.thickness_mm, plate.hole_axis) == (
+        (80, 80), (0.25, 0.25), 10.0, 0.3, "chief_ray")
+    assert (eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm) == (4.0, 10.0, None)
+    assert eye.view_pixels == (128, 128)
+    assert eye.positions_mm == ((0.0, 0.0),) and eye.weights == (1.0,)
+    fov = full_fov_deg(20.0, 10.0 + 0.3 + 10.0)
+    assert eye.fov_deg == pytest.approx((fov, fov), rel=1e-12)
+    assert fov / 128 == pytest.approx(0.41, abs=0.01)  # the "~0.4 deg per view pixel" claim
+    opt = config.optimizer
+    assert (opt.method, opt.learning_rate, opt.iterations, opt.schedule, opt.init, opt.display) == (
+        "adam", 0.05, 300, "cosine", "pinholes", "optimized")
+    assert (opt.efficiency_weight, opt.plateau_patience, opt.precision, opt.device, opt.seed) == (
+        0.0, 60, "float32", "auto", 0)
+
+
+def test_seed_preset_is_the_dissertation_setting() -> None:
+    config = resolve("seed")
+    display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
+    assert (display.width_mm, display.height_mm, display.pixels) == (10.0, 15.0, (28, 28))
+    assert plate.cells == (28, 28)
+    assert plate.pitch_mm == pytest.approx((10 / 28, 15 / 28), rel=1e-15)
+    assert plate.size_mm == pytest.approx((10.0, 15.0))
+    assert (plate.gap_mm, plate.thickness_mm, plate.hole_axis) == (10.0, 0.2, "straight")
+    assert eye.view_pixels == (28, 28) and len(eye.positions_mm) == 1
+    assert eye.fov_deg == pytest.approx(
+        (full_fov_deg(10.0, 20.2), full_fov_deg(15.0, 20.2)), rel=1e-12)
+    opt = config.optimizer
+    assert (opt.method, opt.learning_rate, opt.momentum, opt.iterations, opt.schedule) == (
+        "sgd", 0.8, 0.9, 300, "constant")
+    assert (opt.init, opt.display, opt.plateau_patience) == ("random", "target", 0)
+
+
+@pytest.mark.parametrize("name, expected", [
+    ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
+                  "gap 10 mm", "thickness 0.3 mm", "pupil 4 mm", "eye relief 10 mm",
+                  "128 x 128", "52.5 x 52.5 deg", "optimized", "adam lr 0.05", "300 iterations"]),
+    ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",
+              "thickness 0.2 mm", "straight", "sgd lr 0.8 momentum 0.9", "display target",
+              "no early stop"]),
+])
+def test_preset_summary_gives_key_numbers(name: str, expected: list[str]) -> None:
+    summary = preset_summary(name)
+    for text in expected:
+        assert text in summary, (text, summary)
+
+
+def test_preset_summary_rejects_unknown_name() -> None:
+    with pytest.raises(ValueError, match="near-eye, seed"):
+        preset_summary("nope")
+
+
+def test_resolve_does_not_change_the_presets() -> None:
+    before = copy.deepcopy(PRESETS)
+    config = resolve(file_dict={"plate": {"gap_mm": 12.0}, "process": {"a": [1]}},
+                     overrides={"eye.positions_mm": [[1, 2], [3, 4]]})
+    assert config.scene.plate.gap_mm == 12.0
+    assert PRESETS == before
+
+
+# --- round trips ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_to_toml_round_trips_each_preset(name: str) -> None:
+    config = resolve(name)
+    assert round_trip(config) == config
+    assert parse_toml(to_toml(config), "x") == to_dict(config)
+    json.dumps(to_dict(config))  # plain values only
+
+
+# Pitches that fit a 20 mm display with at most 400 cells per axis.
+pitch = st.floats(0.05, 2.0, allow_nan=False)
+overrides_strategy = st.fixed_dictionaries(
+    {
+        "plate.gap_mm": st.floats(0.5, 50.0),
+        "plate.thickness_mm": st.floats(0.0, 2.0),
+        "plate.pitch_mm": st.one_of(pitch, st.tuples(pitch, pitch).map(list)),
+        "eye.pupil_mm": st.floats(1.0, 8.0),
+        "eye.view_pixels": st.lists(st.integers(1, 512), min_size=2, max_size=2),
+    },
+    optional={
+        "eye.focus_mm": st.one_of(st.just("infinity"), st.floats(100.0, 1e6)),
+        "eye.fov_deg": st.one_of(st.just("display"),
+                                 st.lists(st.floats(1.0, 120.0), min_size=2, max_size=2)),
+    },
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(list(PRESETS)), overrides=overrides_strategy)
+def test_round_trip_with_random_overrides(name: str, overrides: dict[str, Any]) -> None:
+    config = resolve(name, overrides=overrides)
+    assert config.scene.plate.gap_mm == overrides["plate.gap_mm"]
+    assert config.scene.eye.view_pixels == tuple(overrides["eye.view_pixels"])
+    assert round_trip(config) == config
+
+
+# Top-level names for extra sections: not a known section nor close enough to pass for a typo.
+section_name = st.from_regex(r"[a-z]{3,10}", fullmatch=True).filter(
+    lambda n: n != "preset"
+    and not difflib.get_close_matches(n, list(SECTION_KEYS), n=1, cutoff=0.8))
+scalar = st.one_of(st.booleans(), st.integers(-(2**63), 2**63 - 1), st.text(),
+                   st.floats(allow_nan=False))
+toml_value = st.recursive(
+    scalar,
+    lambda inner: st.one_of(st.lists(inner, max_size=3),
+                            st.dictionaries(st.text(max_size=8), inner, max_size=3)),
+    max_leaves=10,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(extra=st.dictionaries(section_name, st.dictionaries(st.text(max_size=8), toml_value,
+                                                           max_size=4), max_size=3))
+def test_extra_sections_survive_the_round_trip(extra: dict[str, Any]) -> None:
+    config = resolve(file_dict=extra)
+    assert to_dict(config) == {**to_dict(resolve()), **extra}
+    assert round_trip(config) == config
+
+
+# --- layering ---------------------------------------------------------------------------------
+
+
+def test_precedence_preset_file_overrides() -> None:
+    file = {"plate": {"gap_mm": 12.0}, "eye": {"pupil_mm": 3.0}}
+    assert resolve().scene.plate.gap_mm == 10.0
+    assert resolve(file_dict=file).scene.plate.gap_mm == 12.0
+    layered = resolve(file_dict=file, overrides={"plate.gap_mm": 14.0})
+    assert layered.scene.plate.gap_mm == 14.0
+    assert layered.scene.eye.pupil_mm == 3.0  # the file still counts where not overridden
+    assert layered.scene.plate.thickness_mm == 0.3  # and the preset where neither says
+
+
+def test_preset_from_file_unless_given() -> None:
+    file = {"preset": "seed", "plate": {"gap_mm": 12.0}}
+    from_file = resolve(file_dict=file)
+    assert from_file.preset == "seed" and from_file.optimizer.method == "sgd"
+    assert from_file.scene.plate.gap_mm == 12.0
+    given_preset = resolve("near-eye", file_dict=file)
+    assert given_preset.preset == "near-eye" and given_preset.optimizer.method == "adam"
+    assert given_preset.scene.plate.gap_mm == 12.0
+
+
+def test_none_override_means_not_given() -> None:
+    assert resolve(overrides={"plate.gap_mm": None}) == resolve()
+
+
+def test_fov_display_follows_the_resolved_geometry() -> None:
+    config = resolve(overrides={"plate.gap_mm": 20.0, "display.width_mm": 30.0})
+    fov_x, fov_y = config.scene.eye.fov_deg
+    assert fov_x == pytest.approx(full_fov_deg(30.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+    assert fov_y == pytest.approx(full_fov_deg(20.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+
+
+def test_explicit_fov_and_focus() -> None:
+    config = resolve(file_dict=parse_toml(
+        '[eye]\nfov_deg = [40, 30]\nfocus_mm = 500\n', "eye.toml"))
+    assert config.scene.eye.fov_deg == (40.0, 30.0)
+    assert config.scene.eye.focus_mm == 500.0
+    assert resolve(overrides={"eye.focus_mm": "infinity"}).scene.eye.focus_mm is None
+    assert 'focus_mm = 500.0' in to_toml(config)
+    assert 'focus_mm = "infinity"' in to_toml(resolve())
+
+
+def test_single_pitch_means_square_cells() -> None:
+    assert resolve(file_dict={"plate": {"pitch_mm": 0.5}}).scene.plate.pitch_mm == (0.5, 0.5)
+
+
+def test_new_positions_get_equal_weights_unless_weights_given() -> None:
+    positions = [[0, 0], [1, 0], [0, 1]]
+    eye = resolve(overrides={"eye.positions_mm": positions}).scene.eye
+    assert eye.positions_mm == ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0))
+    assert eye.weights == (1.0, 1.0, 1.0)
+    weighted = resolve(file_dict={"eye": {"positions_mm": positions, "weights": [2, 1, 1]}})
+    assert weighted.scene.eye.weights == (2.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"eye\.weights"):
+        resolve(file_dict={"eye": {"positions_mm": positions, "weights": [2, 1]}})
+
+
+def test_extra_sections_are_kept_read_only_and_overridable() -> None:
+    file = parse_toml('[process]\nname = "sla"\nsizes = [0.1, 0.2]\n[validation.views]\n'
+                      'diffraction = true\n', "p.toml")
+    config = resolve(file_dict=file, overrides={"process.min_hole_mm": 0.08})
+    assert config.extra["process"] == {"name": "sla", "sizes": (0.1, 0.2), "min_hole_mm": 0.08}
+    assert config.extra["validation"]["views"]["diffraction"] is True
+    with pytest.raises(TypeError):
+        config.extra["process"]["name"] = "fdm"
+    assert to_dict(config)["process"]["sizes"] == [0.1, 0.2]
+    assert round_trip(config) == config
+
+
+# --- errors -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kwargs, error, fragments", [
+    ({"file_dict": {"plate": {"gap": 3.0}}},
+     ValueError, ["'gap'", "[plate]", "gap_mm, thickness_mm", "Did you mean 'gap_mm'"]),
+    ({"file_dict": {"plate": {"pupil_mm": 3.0}}}, ValueError, ["'pupil_mm' belongs in [eye]"]),
+    ({"file_dict": {"optimizer": {"learning_rat": 0.1}}}, ValueError, ["'learning_rate'"]),
+    ({"file_dict": {"optimiser": {"method": "sgd"}}}, ValueError, ["did you mean [optimizer]"]),
+    ({"file_dict": {"gap_mm": 3.0}}, TypeError, ["'gap_mm'", "belongs in [plate]"]),
+    ({"file_dict": {"plate": {"gap_mm": "ten"}}, "file_source": "my.toml"},
+     TypeError, ["plate.gap_mm", "'ten'", "my.toml", "a number", "gap_mm = 10.0"]),
+    ({"file_dict": {"plate": {"gap_mm": -1}}, "file_source": "my.toml"},
+     ValueError, ["plate.gap_mm", "-1", "0 < plate.gap_mm", "came from file 'my.toml'"]),
+    ({"overrides": {"plate.thickness_mm": -0.1}}, ValueError, ["plate.thickness_mm", "flags"]),
+    ({"overrides": {"display.pixels": [400.5, 400]}}, TypeError, ["display.pixels", "whole"]),
+    ({"overrides": {"optimizer.iterations": 10.0}}, TypeError, ["optimizer.iterations", "whole"]),
+    ({"overrides": {"optimizer.method": "adamw"}}, ValueError, ["optimizer.method", "adam, sgd"]),
+    ({"overrides": {"optimizer.method": 1}}, TypeError, ["optimizer.method", "adam, sgd"]),
+    ({"overrides": {"eye.pupil_mm": True}}, TypeError, ["eye.pupil_mm", "True"]),
+    ({"overrides": {"eye.focus_mm": "inf"}}, TypeError, ["eye.focus_mm", '"infinity"']),
+    ({"overrides": {"eye.focus_mm": 5.0}}, ValueError, ["eye.focus_mm", "in front of the plate"]),
+    ({"overrides": {"eye.fov_deg": "wide"}}, TypeError, ["eye.fov_deg", '"display"']),
+    ({"overrides": {"eye.positions_mm": [[0, 0, 0]]}}, TypeError, ["eye.positions_mm"]),
+    ({"overrides": {"display.width_mm": 1000.0}}, ValueError, ["eye.fov_deg", "as \"display\""]),
+    ({"overrides": {"gap_mm": 3.0}}, ValueError, ["dotted", "'plate.gap_mm'"]),
+    ({"overrides": {"plate.gapmm": 3.0}}, ValueError, ["'gapmm'", "'gap_mm'"]),
+    ({"preset": "nope"}, ValueError, ["'nope'", "near-eye, seed"]),
+    ({"file_dict": {"preset": "nope"}}, ValueError, ["'nope'", "near-eye, seed"]),
+    ({"file_dict": {"preset": 3}}, TypeError, ["preset = 3"]),
+])
+def test_bad_input_gives_a_clear_error(
+    kwargs: dict[str, Any], error: type[Exception], fragments: list[str]
+) -> None:
+    with pytest.raises(error) as info:
+        resolve(**kwargs)
+    for fragment in fragments:
+        assert fragment in str(info.value), (fragment, str(info.value))
+
+
+def test_toml_syntax_error_names_source_and_line() -> None:
+    text = '[plate]\ngap_mm = 10\nhole_axis = straight\n'
+    with pytest.raises(ValueError) as info:
+        parse_toml(text, "examples/bad.toml")
+    message = str(info.value)
+    assert "examples/bad.toml" in message and "line 3" in message and "quotes" in message
+
+
+def test_duplicate_section_is_a_syntax_error() -> None:
+    with pytest.raises(ValueError, match=r"dup\.toml.*line 3"):
+        parse_toml("[plate]\ngap_mm = 1\n[plate]\n", "dup.toml")
