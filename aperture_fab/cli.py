@@ -1,0 +1,188 @@
+"""The `aperture-fab` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["main"]
+
+DESCRIPTION = """\
+Design and fabricate coded pinhole apertures for slim near-eye displays.
+
+A plate pierced by a grid of small holes sits a few millimetres in front of a display,
+close to the eye. The eye cannot focus on the display, but through the holes it sees a
+sharp picture. `design` optimizes the holes (and, by default, what the display shows) so
+that the eye sees your target image.
+"""
+
+DESIGN_EPILOG = """\
+examples:
+  aperture-fab design examples/targets/natural.png --out outputs/natural/plate.stl
+  aperture-fab design a.png b.png --preset seed --out outputs/seed
+  aperture-fab design img.png --config my.toml --gap-mm 8 --iterations 500 --out outputs/x
+  aperture-fab design img.png --out outputs/x --resume     # continue an interrupted run
+
+Precedence, lowest first: the preset, then --config FILE.toml, then these flags. The fully
+resolved config is written to design.toml beside the outputs: `--config design.toml`
+re-runs it exactly. Ctrl-C saves a checkpoint; --resume continues it.
+
+outputs (in the folder of --out): design.npz, design.toml, design.json, display_<target>.png
+(what the display must show), target_/view_initial_/view_optimized_/view_open_/
+view_regular_pinholes_<target>.png (views scaled by their best gain), loss.png.
+"""
+
+# (flag, dotted config key, type, help)
+OVERRIDES: tuple[tuple[str, str, Any, str], ...] = (
+    ("--cells", "plate.cells", "pair_int", "plate cell grid NX NY"),
+    ("--pitch-mm", "plate.pitch_mm", float, "cell pitch in mm (square cells)"),
+    ("--gap-mm", "plate.gap_mm", float, "display to the plate's bottom face, mm"),
+    ("--thickness-mm", "plate.thickness_mm", float, "plate thickness, mm"),
+    ("--hole-axis", "plate.hole_axis", ("straight", "chief_ray"), "hole axes"),
+    ("--pupil-mm", "eye.pupil_mm", float, "eye pupil diameter, mm"),
+    ("--eye-relief-mm", "eye.eye_relief_mm", float, "plate top face to the pupil, mm"),
+    ("--focus-mm", "eye.focus_mm", "focus", "eye focus distance in mm, or 'infinity'"),
+    ("--view-pixels", "eye.view_pixels", "pair_int", "view grid NX NY"),
+    ("--method", "optimizer.method", ("adam", "sgd"), "optimizer"),
+    ("--lr", "optimizer.learning_rate", float, "learning rate"),
+    ("--iterations", "optimizer.iterations", int, "most iterations"),
+    ("--init", "optimizer.init", ("pinholes", "random", "uniform"), "starting mask"),
+    ("--display-mode", "optimizer.display", ("optimized", "target"),
+     "optimize the display content, or show the target as is"),
+    ("--efficiency-weight", "optimizer.efficiency_weight", float,
+     "trade image quality for light (0 ignores light level)"),
+    ("--seed", "optimizer.seed", int, "random seed"),
+    ("--precision", "optimizer.precision", ("float32", "float64"), "floating point precision"),
+    ("--device", "optimizer.device", str, "auto (CUDA when available), cpu, cuda or cuda:N"),
+)
+
+
+def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("configuration")
+    group.add_argument("--preset", help="preset to start from (see `aperture-fab presets`); "
+                       "default near-eye")
+    group.add_argument("--config", type=Path, metavar="FILE.toml",
+                       help="TOML config; overrides the preset")
+    for flag, key, kind, text in OVERRIDES:
+        dest = key.replace(".", "__")
+        if kind == "pair_int":
+            group.add_argument(flag, dest=dest, type=int, nargs=2, metavar=("NX", "NY"),
+                               help=text)
+        elif kind == "focus":
+            group.add_argument(flag, dest=dest, metavar="MM", help=text)
+        elif isinstance(kind, tuple):
+            group.add_argument(flag, dest=dest, choices=kind, help=text)
+        else:
+            group.add_argument(flag, dest=dest, type=kind, help=text)
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for flag, key, kind, _ in OVERRIDES:
+        value = getattr(args, key.replace(".", "__"))
+        if value is None:
+            continue
+        if kind == "pair_int":
+            value = list(value)
+        elif kind == "focus" and value != "infinity":
+            try:
+                value = float(value)
+            except ValueError:
+                raise ValueError(f"{flag} {value!r}: give a distance in mm or 'infinity'.") from None
+        elif key == "plate.pitch_mm":
+            value = [value, value]
+        out[key] = value
+    return out
+
+
+def _load_config(args: argparse.Namespace) -> Any:
+    from aperture_fab.config import parse_toml, resolve
+
+    file_dict = None
+    if args.config is not None:
+        try:
+            text = args.config.read_text()
+        except OSError as err:
+            raise ValueError(f"--config {args.config}: cannot read it ({err.strerror}).") from err
+        file_dict = parse_toml(text, str(args.config))
+    return resolve(args.preset, file_dict, _overrides(args),
+                   file_source=None if args.config is None else str(args.config))
+
+
+def _cmd_presets(args: argparse.Namespace) -> int:
+    from aperture_fab.presets import PRESET_DESCRIPTIONS, PRESETS, preset_summary
+
+    for name in PRESETS:
+        print(f"{name}: {PRESET_DESCRIPTIONS[name]}")
+        print(textwrap.indent(preset_summary(name), "  "))
+        print()
+    return 0
+
+
+def _cmd_design(args: argparse.Namespace) -> int:
+    from aperture_fab.optimize import Interrupted
+    from aperture_fab.pipeline import output_folder, run_design
+
+    config = _load_config(args)
+    folder = output_folder(args.out)
+    try:
+        result = run_design(args.targets, args.out, config, resume=args.resume,
+                            progress=not args.quiet)
+    except Interrupted as stop:
+        print(f"\ninterrupted at iteration {stop.state['iteration']}; checkpoint saved in "
+              f"{folder}. Continue with the same command and --resume.", file=sys.stderr)
+        return 130
+    m = result.metrics
+    print(f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
+          f"stopped: {result.design.stopped})")
+    print("PSNR after gain (dB), nominal eye position:")
+    header = f"  {'target':<16}" + "".join(f"{v:>18}" for v in m)
+    print(header)
+    for t, name in enumerate(result.names):
+        print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in m))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="aperture-fab", description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("design", help="optimize a plate for target images",
+                       description="Optimize a plate of pinholes (and the display content) so "
+                       "that the eye sees the target images.", epilog=DESIGN_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("targets", nargs="+", type=Path, metavar="TARGET",
+                   help="target images (PNG/JPEG; several: one plate for all)")
+    p.add_argument("--out", type=Path, default=Path("outputs/design/plate.stl"),
+                   help="a part file (its folder gets every output) or a folder "
+                   "(default outputs/design/plate.stl)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its checkpoint in the output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_config_flags(p)
+    p.set_defaults(func=_cmd_design)
+
+    p = sub.add_parser("presets", help="list the presets with their key numbers")
+    p.set_defaults(func=_cmd_presets)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ValueError, TypeError, FileNotFoundError, FloatingPointError) as err:
+        print(f"aperture-fab: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,324 @@
+"""Target images: decode files (bytes) to linear-light RGB, resample, encode PNG.
+
+Inside the model colour is linear light in [0, 1]; image files are sRGB (DESIGN.md section 2), so
+this module converts at the edge. An image array is float64 of shape (C, H, W): C = 3 (RGB) or 1
+(grey), row 0 the top, column 0 the left. This module does not touch the filesystem: it takes and
+returns bytes; the caller reads and writes files.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import warnings
+import zlib
+from typing import Literal
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+__all__ = [
+    "MAX_IMAGE_PIXELS",
+    "PngBits",
+    "ResampleKernel",
+    "decode_image",
+    "encode_png",
+    "is_grey",
+    "linear_to_srgb",
+    "resample",
+    "srgb_to_linear",
+]
+
+ResampleKernel = Literal["box", "bilinear"]
+RESAMPLE_KERNELS: tuple[ResampleKernel, ...] = ("box", "bilinear")
+PngBits = Literal[8, 16]
+
+#: Largest image decode_image accepts by default (64 megapixels): larger files are almost surely
+#: a mistake, and a decompression bomb must be refused before it is decoded.
+MAX_IMAGE_PIXELS = 64_000_000
+
+#: IEC 61966-2-1 sRGB transfer curve: a linear toe below the thresholds, a 2.4 power above.
+SRGB_ENCODED_THRESHOLD = 0.04045
+SRGB_LINEAR_THRESHOLD = 0.0031308
+SRGB_TOE_SLOPE = 12.92
+SRGB_OFFSET = 0.055
+SRGB_GAMMA = 2.4
+
+#: Full scale of 8-bit and 16-bit samples.
+MAX_8BIT = 255
+MAX_16BIT = 65535
+
+#: Channels that differ by no more than this count as equal in is_grey.
+GREY_TOLERANCE = 1e-9
+
+#: Pillow modes holding one grey sample of up to 16 bits (16-bit PNG greyscale, PGM, ...).
+WIDE_GREY_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I")
+
+#: File signatures, to say what a file that Pillow cannot read looks like.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+SIGNATURES: tuple[tuple[bytes, str], ...] = (
+    (PNG_SIGNATURE, "PNG"),
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"GIF87a", "GIF"),
+    (b"GIF89a", "GIF"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+    (b"BM", "BMP"),
+)
+
+REEXPORT = "Re-export it as PNG (8 or 16 bit, RGB or greyscale) and try again."
+
+
+def _check_unit_array(name: str, x: np.ndarray) -> np.ndarray:
+    array = np.asarray(x, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} holds NaN or infinite values; give finite values in [0, 1].")
+    if array.size and (array.min() < 0.0 or array.max() > 1.0):
+        raise ValueError(
+            f"{name} holds values from {array.min():g} to {array.max():g}; allowed: 0 to 1. "
+            "Clip it first, e.g. np.clip(x, 0, 1), or normalise it by its maximum."
+        )
+    return array
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] to linear light in [0, 1] (IEC 61966-2-1), float64."""
+    v = _check_unit_array("srgb_to_linear input", x)
+    power = ((v + SRGB_OFFSET) / (1 + SRGB_OFFSET)) ** SRGB_GAMMA
+    return np.where(v <= SRGB_ENCODED_THRESHOLD, v / SRGB_TOE_SLOPE, power)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] to sRGB-encoded values in [0, 1] (IEC 61966-2-1), float64."""
+    v = _check_unit_array("linear_to_srgb input", x)
+    power = (1 + SRGB_OFFSET) * v ** (1 / SRGB_GAMMA) - SRGB_OFFSET
+    return np.where(v <= SRGB_LINEAR_THRESHOLD, v * SRGB_TOE_SLOPE, power)
+
+
+def _unreadable_message(name: str, data: bytes, error: Exception) -> str:
+    """Say what a file that Pillow cannot open looks like, and what to do."""
+    for signature, kind in SIGNATURES:
+        if data.startswith(signature):
+            if kind == "PNG" and len(data) >= 24 and data[12:16] == b"IHDR":
+                width, height = struct.unpack(">II", data[16:24])
+                if width == 0 or height == 0:
+                    return (f"{name}: the image has zero size ({width} x {height} pixels). "
+                            f"{REEXPORT}")
+            return (f"{name}: looks like a {kind} file but cannot be read ({error}); it is "
+                    f"probably truncated or corrupt. {REEXPORT}")
+    return (f"{name}: is not an image file that can be read ({len(data)} bytes, starting "
+            f"{data[:8]!r}). Give a PNG or JPEG image, or re-export it as PNG.")
+
+
+def _too_large_message(name: str, width: int, height: int, max_pixels: int) -> str:
+    shrink = (max_pixels / (width * height)) ** 0.5
+    fit = (max(1, int(width * shrink)), max(1, int(height * shrink)))
+    return (f"{name}: the image is {width} x {height} pixels ({width * height / 1e6:.1f} "
+            f"megapixels), more than the limit of {max_pixels / 1e6:g} megapixels. Downscale it "
+            f"below {max_pixels / 1e6:g} megapixels (e.g. to {fit[0]} x {fit[1]}) and try again.")
+
+
+def _decoding_table(full_scale: int) -> np.ndarray:
+    """Linear value of every integer sRGB code 0..full_scale, float64 (full_scale + 1,)."""
+    return srgb_to_linear(np.arange(full_scale + 1) / full_scale)
+
+
+def _linear_rgb(image: Image.Image, name: str) -> np.ndarray:
+    """A loaded Pillow image to linear RGB (3, H, W) float64, alpha composited on black."""
+    if image.mode in WIDE_GREY_MODES:
+        # 16-bit greyscale keeps its full precision; Pillow gives these as 0..65535 integers.
+        codes = np.clip(np.asarray(image), 0, MAX_16BIT).astype(np.intp)
+        return np.repeat(_decoding_table(MAX_16BIT)[codes][None], 3, axis=0)
+    if image.mode == "F":
+        values = np.asarray(image, dtype=np.float64)
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{name}: the float image holds NaN or infinite values. {REEXPORT}")
+        return np.repeat(srgb_to_linear(np.clip(values, 0.0, 1.0))[None], 3, axis=0)
+    has_alpha = image.has_transparency_data
+    try:
+        # Palette, CMYK (Pillow's simple conversion), YCbCr, 1-bit, LA, ... all become 8-bit RGB(A).
+        converted = image.convert("RGBA" if has_alpha else "RGB")
+    except (ValueError, OSError) as error:
+        raise ValueError(f"{name}: colour mode {image.mode} is not supported ({error}). "
+                         f"{REEXPORT}") from error
+    codes = np.asarray(converted).transpose(2, 0, 1)
+    linear = _decoding_table(MAX_8BIT)[codes[:3]]
+    if has_alpha:
+        # Alpha is coverage, a linear quantity: composite over black in linear light.
+        linear = linear * (codes[3] / MAX_8BIT)
+    return linear
+
+
+def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Decode an image file's bytes to linear-light RGB, float64 (3, H, W) in [0, 1], row 0 top.
+
+    Reads what Pillow reads (PNG, JPEG, ...). sRGB is assumed (embedded ICC profiles are ignored);
+    the EXIF orientation is applied so the image is upright; transparent pixels are composited on
+    black. 16-bit greyscale keeps its precision; 16-bit colour PNG is read at 8 bits by Pillow.
+    `name` (usually the file name) is only used in error messages. Raises ValueError, naming
+    `name`, for empty, unreadable, truncated, zero-sized or larger than max_pixels images; the size
+    is checked from the header, before decoding.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise TypeError(f"{name}: decode_image takes the file's bytes, got {type(data).__name__}")
+    if not (isinstance(max_pixels, int) and not isinstance(max_pixels, bool) and max_pixels > 0):
+        raise ValueError(f"max_pixels = {max_pixels!r} must be a positive whole number of pixels, "
+                         f"e.g. {MAX_IMAGE_PIXELS}.")
+    data = bytes(data)
+    if len(data) == 0:
+        raise ValueError(f"{name}: the file is empty (0 bytes). Check the path, or re-export the "
+                         "image as PNG.")
+    with warnings.catch_warnings():
+        # Pillow's own bomb warning is replaced by the max_pixels check below; its global
+        # Image.MAX_IMAGE_PIXELS is left as it is (it still refuses images over twice its limit).
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            opened = Image.open(io.BytesIO(data))
+        except Image.DecompressionBombError as error:
+            raise ValueError(f"{name}: the image is too large ({error}). Downscale it below "
+                             f"{max_pixels / 1e6:g} megapixels and try again.") from error
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as error:
+            raise ValueError(_unreadable_message(name, data, error)) from error
+        with opened:
+            width, height = opened.size
+            if width == 0 or height == 0:
+                raise ValueError(f"{name}: the image has zero size ({width} x {height} pixels). "
+                                 f"{REEXPORT}")
+            if width * height > max_pixels:
+                raise ValueError(_too_large_message(name, width, height, max_pixels))
+            try:
+                # Truncated files raise here ("image file is truncated"): never load them anyway.
+                opened.load()
+                upright = ImageOps.exif_transpose(opened)
+            except Image.DecompressionBombError as error:
+                raise ValueError(f"{name}: the image is too large ({error}). Downscale it below "
+                                 f"{max_pixels / 1e6:g} megapixels and try again.") from error
+            except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as error:
+                raise ValueError(f"{name}: the image data cannot be decoded ({error}); the file "
+                                 f"is probably truncated or corrupt. {REEXPORT}") from error
+            return np.ascontiguousarray(_linear_rgb(upright, name))
+
+
+def _check_image(name: str, image: np.ndarray) -> np.ndarray:
+    if not isinstance(image, np.ndarray) or image.ndim != 3:
+        shape = getattr(image, "shape", None)
+        raise ValueError(f"{name} must be an array of shape (C, H, W), got shape {shape}.")
+    if image.shape[1] == 0 or image.shape[2] == 0:
+        raise ValueError(f"{name} has zero size, shape {image.shape}; give at least 1 x 1 pixels.")
+    return image
+
+
+def _axis_weights(n_in: int, n_out: int, kind: ResampleKernel) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices (n_out, taps) int and weights (n_out, taps) float64, each row summing to 1.
+
+    Pixel k of the output covers [k, k + 1) * n_in / n_out in input pixel units.
+    box: the exact overlap area of each input pixel with the output pixel (area average).
+    bilinear: a triangle filter of half-width max(1, n_in / n_out) input pixels (as Pillow's
+    BILINEAR), truncated and renormalised at the borders.
+    """
+    scale = n_in / n_out
+    if kind == "box":
+        edges = np.arange(n_out + 1) * n_in / n_out
+        low, high = edges[:-1, None], edges[1:, None]
+        start = np.floor(edges[:-1]).astype(np.int64)
+        taps = int(np.max(np.ceil(edges[1:]) - start))
+        index = start[:, None] + np.arange(taps)
+        weight = np.clip(np.minimum(index + 1, high) - np.maximum(index, low), 0.0, None)
+    else:
+        half_width = max(scale, 1.0)
+        centre = (np.arange(n_out) + 0.5) * scale
+        start = np.floor(centre - half_width - 0.5).astype(np.int64)
+        taps = int(np.ceil(2 * half_width)) + 2
+        index = start[:, None] + np.arange(taps)
+        weight = np.clip(1.0 - np.abs(index + 0.5 - centre[:, None]) / half_width, 0.0, None)
+    weight = np.where((index >= 0) & (index < n_in), weight, 0.0)
+    index = np.clip(index, 0, n_in - 1)
+    return index, weight / weight.sum(axis=1, keepdims=True)
+
+
+def _resample_axis(image: np.ndarray, axis: int, n_out: int, kind: ResampleKernel) -> np.ndarray:
+    n_in = image.shape[axis]
+    if n_in == n_out:
+        return image
+    index, weight = _axis_weights(n_in, n_out, kind)
+    shape = [1] * image.ndim
+    shape[axis] = n_out
+    out = np.zeros((*image.shape[:axis], n_out, *image.shape[axis + 1:]))
+    for tap in range(index.shape[1]):
+        out += weight[:, tap].reshape(shape) * np.take(image, index[:, tap], axis=axis)
+    return out
+
+
+def resample(image: np.ndarray, size: tuple[int, int],
+             kernel: ResampleKernel = "box") -> np.ndarray:
+    """Resample a linear image (C, H, W) to (C, ny, nx) for size = (nx, ny), float64 in [0, 1].
+
+    Work in linear light. Separable kernels with non-negative weights, so the output stays within
+    the input's range:
+    - "box" (default): each output pixel is the exact area average of the input pixels it covers
+      (pixels are uniformly lit squares). It preserves the mean of any image and keeps hard edges
+      where they fall on output pixel edges; antialiasing on downsampling is the area average.
+    - "bilinear": a triangle filter, widened when downsampling (antialiased, like Pillow's
+      BILINEAR); smoother when enlarging.
+    """
+    source = _check_image("resample image", image)
+    if not (isinstance(size, tuple) and len(size) == 2
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in size)):
+        raise ValueError(f"resample size = {size!r} must be a pair of positive whole numbers "
+                         "(nx, ny), e.g. (64, 64).")
+    if kernel not in RESAMPLE_KERNELS:
+        raise ValueError(f"resample kernel = {kernel!r} is not allowed; choose one of "
+                         f"{', '.join(RESAMPLE_KERNELS)}.")
+    values = np.asarray(source, dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("resample image holds NaN or infinite values; give finite values.")
+    nx, ny = size
+    rows = _resample_axis(values, 1, ny, kernel)
+    return np.clip(_resample_axis(rows, 2, nx, kernel), 0.0, 1.0)
+
+
+def _png_chunk(kind: bytes, payload: bytes) -> bytes:
+    crc = zlib.crc32(kind + payload)
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", crc)
+
+
+def _png_16bit(samples: np.ndarray) -> bytes:
+    """A 16-bit PNG from samples (H, W, C) uint16, C = 1 (grey) or 3 (RGB); Pillow cannot write
+    16-bit RGB, and the format is simple: rows with filter byte 0, big-endian samples, zlib."""
+    height, width, channels = samples.shape
+    colour_type = 0 if channels == 1 else 2
+    header = struct.pack(">IIBBBBB", width, height, 16, colour_type, 0, 0, 0)
+    rows = samples.astype(">u2").reshape(height, width * channels).view(np.uint8)
+    raw = np.concatenate([np.zeros((height, 1), np.uint8), rows], axis=1).tobytes()
+    return (PNG_SIGNATURE + _png_chunk(b"IHDR", header)
+            + _png_chunk(b"IDAT", zlib.compress(raw, 9)) + _png_chunk(b"IEND", b""))
+
+
+def encode_png(image: np.ndarray, bits: PngBits = 8) -> bytes:
+    """Linear image (C, H, W) in [0, 1], C = 1 or 3, to sRGB PNG bytes of 8 or 16 bits."""
+    source = _check_image("encode_png image", image)
+    if source.shape[0] not in (1, 3):
+        raise ValueError(f"encode_png image has {source.shape[0]} channels, shape "
+                         f"{source.shape}; give 1 (grey) or 3 (RGB) channels.")
+    if bits not in (8, 16):
+        raise ValueError(f"encode_png bits = {bits!r} is not allowed; choose 8 or 16.")
+    encoded = linear_to_srgb(_check_unit_array("encode_png image", source))
+    if bits == 16:
+        samples16 = np.rint(encoded * MAX_16BIT).astype(np.uint16).transpose(1, 2, 0)
+        return _png_16bit(samples16)
+    samples8 = np.rint(encoded * MAX_8BIT).astype(np.uint8).transpose(1, 2, 0)
+    picture = Image.fromarray(samples8[:, :, 0] if samples8.shape[2] == 1 else samples8)
+    buffer = io.BytesIO()
+    picture.save(buffer, format="PNG", optimize=True)
+    return buffer.getvalue()
+
+
+def is_grey(image: np.ndarray) -> bool:
+    """True when an image (C, H, W) is grey: one channel, or R, G and B equal within 1e-9."""
+    source = _check_image("is_grey image", image)
+    if source.shape[0] == 1:
+        return True
+    if source.shape[0] != 3:
+        raise ValueError(f"is_grey image has {source.shape[0]} channels; give 1 or 3.")
+    return bool(np.all(np.abs(source[0] - source[1]) <= GREY_TOLERANCE)
+                and np.all(np.abs(source[0] - source[2]) <= GREY_TOLERANCE))

@@ -1,0 +1,275 @@
+"""Optimize the plate's open-area fractions (and the display content) so the view matches targets.
+
+The loss is DESIGN.md's: the MSE between the target and the view scaled by its least-squares gain,
+averaged over targets and eyebox positions (weighted), plus an optional light-efficiency term.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from aperture_fab.baselines import elemental_display, regular_pinholes
+from aperture_fab.model import Renderer, render_open
+from aperture_fab.scene import Scene
+from aperture_fab.settings import OptimizerSettings
+
+__all__ = [
+    "MaskDesign",
+    "Interrupted",
+    "DivergedError",
+    "gain_mse",
+    "psnr_db",
+    "resolve_device",
+    "optimize",
+    "initial_design",
+]
+
+#: The cosine schedule decays the learning rate to this share of its start.
+COSINE_FLOOR = 0.05
+#: Initial logit span: closed cells start at this share of the allowed range, so they can open.
+INIT_CLOSED_SHARE = 0.02
+#: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
+EFFICIENCY_PUPIL_SAMPLES = 32
+
+
+@dataclass(frozen=True)
+class MaskDesign:
+    """An optimized plate and the display content that goes with it.
+
+    open_fraction: (rows, cols) float64, open-area fraction of each cell's hole.
+    displays: (T, C, H, W) float64, linear display content per target.
+    loss_history: (N,) float64, loss per iteration.
+    bounds: (a_min, a_max), the open-area fractions the optimizer was allowed.
+    stopped: why it stopped: "completed" or "plateau".
+    """
+
+    open_fraction: np.ndarray
+    displays: np.ndarray
+    loss_history: np.ndarray
+    bounds: tuple[float, float]
+    stopped: str
+
+
+class Interrupted(Exception):
+    """The run was interrupted (Ctrl-C); `state` resumes it with `optimize(..., state=state)`."""
+
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__(f"interrupted at iteration {state['iteration']}")
+        self.state = state
+
+
+class DivergedError(FloatingPointError):
+    """The loss became NaN or infinite."""
+
+
+def gain_mse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """MSE between target and view after the view's least-squares gain: shapes, not level."""
+    gain = (view * target).sum() / ((view * view).sum() + 1e-20)
+    return ((gain * view - target) ** 2).mean()
+
+
+def psnr_db(mse: float) -> float:
+    """PSNR for a peak of 1 (linear light in [0, 1])."""
+    return 10 * math.log10(1 / max(mse, 1e-20))
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device = {name!r} was asked for but CUDA is not available here; "
+                         "use --device cpu or auto.")
+    return torch.device(name)
+
+
+def _logit(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(1e-4, 1 - 1e-4)
+    return torch.log(x) - torch.log1p(-x)
+
+
+def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Tensor,
+                   settings: OptimizerSettings, bounds: tuple[float, float]) -> dict[str, Any]:
+    lo, hi = bounds
+    rows, cols = scene.plate.cells[1], scene.plate.cells[0]
+    gen = torch.Generator().manual_seed(settings.seed)
+    displays = target_displays.clone()
+    if settings.init == "random":
+        share = torch.rand(rows, cols, generator=gen, dtype=torch.float64)
+    elif settings.init == "uniform":
+        share = torch.full((rows, cols), 0.5, dtype=torch.float64)
+    else:
+        array = regular_pinholes(scene, min_fraction=lo)
+        a = torch.as_tensor(array.open_fraction)
+        share = torch.where(a > 0, (a - lo) / (hi - lo), torch.full_like(a, INIT_CLOSED_SHARE))
+        share = share.clamp(INIT_CLOSED_SHARE, 1 - INIT_CLOSED_SHARE)
+        if settings.display == "optimized":
+            displays = torch.stack([elemental_display(scene, array, t) for t in targets])
+    state: dict[str, Any] = {
+        "iteration": 0,
+        "history": [],
+        "best": math.inf,
+        "best_iteration": 0,
+        "mask_logits": _logit(share.float()).double(),
+        "display_logits": _logit(displays) if settings.display == "optimized" else None,
+        "optimizer": None,
+    }
+    return state
+
+
+def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
+                   settings: OptimizerSettings, bounds: tuple[float, float] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The optimizer's starting point: open fractions (rows, cols) and displays (T, C, H, W)."""
+    lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
+    state = _initial_state(scene, torch.as_tensor(targets, dtype=torch.float64),
+                           torch.as_tensor(target_displays, dtype=torch.float64), settings,
+                           (lo, hi))
+    a = lo + (hi - lo) * torch.sigmoid(state["mask_logits"])
+    logits = state["display_logits"]
+    displays = target_displays if logits is None else torch.sigmoid(logits).numpy()
+    return a.numpy(), np.asarray(displays, dtype=np.float64)
+
+
+def _lr_at(settings: OptimizerSettings, iteration: int) -> float:
+    if settings.schedule == "constant":
+        return settings.learning_rate
+    phase = min(1.0, iteration / max(1, settings.iterations - 1))
+    return settings.learning_rate * (COSINE_FLOOR + (1 - COSINE_FLOOR)
+                                     * 0.5 * (1 + math.cos(math.pi * phase)))
+
+
+def optimize(
+    scene: Scene,
+    targets: np.ndarray,
+    target_displays: np.ndarray,
+    settings: OptimizerSettings,
+    *,
+    bounds: tuple[float, float] | None = None,
+    state: dict[str, Any] | None = None,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    progress: bool = True,
+) -> MaskDesign:
+    """Optimize a plate for targets (T, C, ny, nx) on the view grid, linear light.
+
+    target_displays: (T, C, H, W) the targets on the display's pixel grid (shown as is in
+    display mode "target", and the start of optimized displays for non-pinhole inits).
+    bounds: allowed open-area fractions (a_min, a_max); default (0, the largest hole a cell takes).
+    state: a checkpoint from `on_checkpoint` or `Interrupted.state`, to resume.
+    """
+    device = resolve_device(settings.device)
+    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
+    if not 0 <= lo < hi <= 1:
+        raise ValueError(f"bounds = {(lo, hi)} must satisfy 0 <= a_min < a_max <= 1.")
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    shown_t = torch.as_tensor(target_displays, dtype=dtype, device=device)
+    expected = (scene.eye.view_pixels[1], scene.eye.view_pixels[0])
+    if target_t.ndim != 4 or tuple(target_t.shape[-2:]) != expected:
+        raise ValueError(f"targets have shape {tuple(target_t.shape)}; expected (T, C, *{expected}).")
+    if state is None:
+        state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
+                               (lo, hi))
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)
+    params = [mask_logits]
+    display_logits = None
+    if state["display_logits"] is not None:
+        display_logits = state["display_logits"].to(device, dtype).clone().requires_grad_(True)
+        params.append(display_logits)
+    if settings.method == "adam":
+        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
+    else:
+        opt = torch.optim.SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
+    if state["optimizer"] is not None:
+        opt.load_state_dict(state["optimizer"])
+    weights = torch.tensor(scene.eye.weights, dtype=dtype)
+    weights = weights / weights.sum()
+    fixed_stacks = None
+    if display_logits is None:
+        with torch.no_grad():
+            fixed_stacks = [renderer.display_stack(d) for d in shown_t]
+
+    def loss_fn() -> torch.Tensor:
+        a = lo + (hi - lo) * torch.sigmoid(mask_logits)
+        displays = shown_t if display_logits is None else torch.sigmoid(display_logits)
+        total = torch.zeros((), dtype=dtype, device=device)
+        for t in range(target_t.shape[0]):
+            stack = fixed_stacks[t] if fixed_stacks is not None else renderer.display_stack(
+                displays[t])
+            for p, w in enumerate(weights.tolist()):
+                view = renderer.render_stack(a, stack, p)
+                loss = gain_mse(view, target_t[t])
+                if settings.efficiency_weight > 0:
+                    open_view = render_open(scene, displays[t], p,
+                                            pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
+                    efficiency = view.mean() / (open_view.mean() + 1e-12)
+                    loss = loss + settings.efficiency_weight * (1 - efficiency)
+                total = total + w * loss
+        return total / target_t.shape[0]
+
+    def snapshot(iteration: int) -> dict[str, Any]:
+        return {
+            "iteration": iteration,
+            "history": list(state["history"]),
+            "best": state["best"],
+            "best_iteration": state["best_iteration"],
+            "mask_logits": mask_logits.detach().cpu().clone(),
+            "display_logits": None if display_logits is None
+            else display_logits.detach().cpu().clone(),
+            "optimizer": copy.deepcopy(opt.state_dict()),
+        }
+
+    stopped = "completed"
+    start = state["iteration"]
+    bar = tqdm(total=settings.iterations, initial=start, disable=not progress, unit="it",
+               desc="optimize", leave=False)
+    iteration = start
+    try:
+        for iteration in range(start, settings.iterations):
+            for group in opt.param_groups:
+                group["lr"] = _lr_at(settings, iteration)
+            opt.zero_grad(set_to_none=True)
+            loss = loss_fn()
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise DivergedError(
+                    f"the loss became {value} at iteration {iteration}; lower the learning rate "
+                    f"(now {settings.learning_rate}) or use precision float64."
+                )
+            loss.backward()
+            opt.step()
+            state["history"].append(value)
+            if value < state["best"] * (1 - settings.plateau_tolerance):
+                state["best"], state["best_iteration"] = value, iteration
+            bar.update(1)
+            bar.set_postfix(loss=f"{value:.3e}", psnr=f"{psnr_db(value):.1f}dB")
+            done = iteration + 1
+            if on_checkpoint is not None and done % settings.checkpoint_every == 0:
+                on_checkpoint(snapshot(done))
+            if settings.plateau_patience and iteration - state["best_iteration"] >= \
+                    settings.plateau_patience:
+                stopped = "plateau"
+                break
+    except KeyboardInterrupt:
+        bar.close()
+        # The iteration in flight did not step: resume from the last completed one.
+        raise Interrupted(snapshot(len(state["history"]))) from None
+    bar.close()
+    with torch.no_grad():
+        a = lo + (hi - lo) * torch.sigmoid(mask_logits)
+        displays = shown_t if display_logits is None else torch.sigmoid(display_logits)
+    return MaskDesign(
+        open_fraction=a.detach().cpu().double().numpy(),
+        displays=displays.detach().cpu().double().numpy(),
+        loss_history=np.asarray(state["history"], dtype=np.float64),
+        bounds=(lo, hi),
+        stopped=stopped,
+    )

@@ -1,0 +1,291 @@
+"""The design job: targets in, an optimized plate and its evidence out.
+
+`design` is the Python API (values in, values out, no files). `run_design` is the same job on
+files: it reads the targets, writes every output atomically, checkpoints, and resumes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from aperture_fab.baselines import elemental_display, regular_pinholes
+from aperture_fab.config import Config, to_dict, to_toml
+from aperture_fab.images import decode_image, encode_png, is_grey, resample
+from aperture_fab.model import Renderer, render_open
+from aperture_fab.optimize import (
+    Interrupted,
+    MaskDesign,
+    gain_mse,
+    initial_design,
+    optimize,
+    psnr_db,
+    resolve_device,
+)
+
+__all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+PART_SUFFIXES = (".stl", ".step", ".stp", ".3mf", ".dxf", ".svg")
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """Everything the design job produced.
+
+    design: the optimized plate and display content.
+    names: (T,) target names.
+    targets: (T, C, ny, nx) float64 linear targets on the view grid.
+    views: {"initial" | "optimized" | "open" | "regular_pinholes": (T, P, C, ny, nx) float64}
+        for every target and eyebox position.
+    metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position.
+    """
+
+    config: Config
+    design: MaskDesign
+    names: tuple[str, ...]
+    targets: np.ndarray
+    views: dict[str, np.ndarray]
+    metrics: dict[str, dict[str, list[float]]]
+
+
+def _prepare(config: Config, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Targets on the view grid (T, C, ny, nx) and on the display grid (T, C, H, W); one channel
+    when every target is grey."""
+    eye, display = config.scene.eye, config.scene.display
+    grey = all(is_grey(im) for im in images)
+    views, shown = [], []
+    for im in images:
+        im = im[:1] if grey else im
+        views.append(resample(im, eye.view_pixels))
+        shown.append(resample(im, display.pixels))
+    return np.stack(views), np.stack(shown)
+
+
+def design(
+    images: Sequence[np.ndarray],
+    config: Config,
+    *,
+    names: Sequence[str] | None = None,
+    bounds: tuple[float, float] | None = None,
+    state: dict[str, Any] | None = None,
+    on_checkpoint: Any = None,
+    progress: bool = False,
+) -> DesignResult:
+    """Design a plate for target images (each (3, H, W) linear RGB in [0, 1])."""
+    if not images:
+        raise ValueError("no targets given; pass at least one image.")
+    names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
+    scene, settings = config.scene, config.optimizer
+    targets, shown = _prepare(config, images)
+    result = optimize(scene, targets, shown, settings, bounds=bounds, state=state,
+                      on_checkpoint=on_checkpoint, progress=progress)
+    views, metrics = evaluate(config, targets, {
+        "initial": initial_design(scene, targets, shown, settings, bounds),
+        "optimized": (result.open_fraction, result.displays),
+    })
+    return DesignResult(config, result, names, targets, views, metrics)
+
+
+def evaluate(
+    config: Config,
+    targets: np.ndarray,
+    variants: dict[str, tuple[np.ndarray, np.ndarray]],
+) -> tuple[dict[str, np.ndarray], dict[str, dict[str, list[float]]]]:
+    """Views and gain-corrected metrics for plate variants, plus the open display (showing the
+    optimized content) and a regular pinhole array showing elemental images."""
+    scene = config.scene
+    device = resolve_device(config.optimizer.device)
+    dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    positions = range(len(scene.eye.positions_mm))
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    array = regular_pinholes(scene)
+    views: dict[str, np.ndarray] = {}
+    with torch.no_grad():
+        for name, (a, displays) in variants.items():
+            a_t = torch.as_tensor(a, dtype=dtype, device=device)
+            views[name] = np.stack([
+                np.stack([renderer.render(a_t, torch.as_tensor(d, dtype=dtype, device=device), p)
+                          .cpu().double().numpy() for p in positions])
+                for d in displays
+            ])
+        # The open display shows the target itself: the best it can do without a plate.
+        views["open"] = np.stack([
+            np.stack([render_open(scene, t, p).cpu().double().numpy() for p in positions])
+            for t in _display_targets(config, target_t)
+        ])
+        pin_a = torch.as_tensor(array.open_fraction, dtype=dtype, device=device)
+        views["regular_pinholes"] = np.stack([
+            np.stack([renderer.render(pin_a, elemental_display(scene, array, t, p), p)
+                      .cpu().double().numpy() for p in positions])
+            for t in target_t
+        ])
+    metrics: dict[str, dict[str, list[float]]] = {}
+    for name, v in views.items():
+        mse = [float(gain_mse(torch.as_tensor(v[t, 0]), torch.as_tensor(targets[t])))
+               for t in range(len(targets))]
+        metrics[name] = {"mse": mse, "psnr_db": [psnr_db(m) for m in mse]}
+    return views, metrics
+
+
+def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
+    """Targets resampled onto the display grid, (T, C, H, W)."""
+    size = config.scene.display.pixels
+    return torch.stack([
+        torch.as_tensor(resample(t.cpu().double().numpy(), size), dtype=targets.dtype,
+                        device=targets.device)
+        for t in targets
+    ])
+
+
+# -- files --------------------------------------------------------------------------------------
+
+
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """Write via a temporary file in the same folder and rename: never a truncated file."""
+    payload = data.encode() if isinstance(data, str) else data
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def output_folder(out: Path) -> Path:
+    """The folder for all outputs: `out` itself, or its parent when `out` names a part file."""
+    folder = out.parent if out.suffix.lower() in PART_SUFFIXES else out
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"cannot create the output folder {folder}: {err.strerror}; choose "
+                         "another --out.") from err
+    if not os.access(folder, os.W_OK):
+        raise ValueError(f"the output folder {folder} is not writable; choose another --out.")
+    return folder
+
+
+def load_targets(paths: Sequence[Path]) -> tuple[list[np.ndarray], list[str]]:
+    """Read and decode target images; names are the file stems, made unique."""
+    images, names = [], []
+    for path in paths:
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise ValueError(f"target image {path} does not exist; check the path.") from None
+        except IsADirectoryError:
+            raise ValueError(f"target image {path} is a folder; give an image file.") from None
+        except OSError as err:
+            raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
+        images.append(decode_image(data, str(path)))
+        name = "".join(c if c.isalnum() or c in "-_" else "_" for c in path.stem) or "target"
+        while name in names:
+            name += "_"
+        names.append(name)
+    return images, names
+
+
+def _save_checkpoint(folder: Path, state: dict[str, Any], fingerprint: str) -> None:
+    import io
+
+    buffer = io.BytesIO()
+    torch.save({"state": state, "fingerprint": fingerprint}, buffer)
+    write_atomic(folder / CHECKPOINT_NAME, buffer.getvalue())
+
+
+def run_design(paths: Sequence[Path], out: Path, config: Config, *, resume: bool = False,
+               progress: bool = True) -> DesignResult:
+    """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint."""
+    folder = output_folder(out)
+    images, names = load_targets(paths)
+    write_atomic(folder / "design.toml", to_toml(config))
+    fingerprint = to_toml(config) + "\n".join(str(Path(p).resolve()) for p in paths)
+    state = None
+    checkpoint = folder / CHECKPOINT_NAME
+    if resume:
+        if not checkpoint.exists():
+            raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
+        saved = torch.load(checkpoint, weights_only=False)
+        if saved["fingerprint"] != fingerprint:
+            raise ValueError(f"--resume: {checkpoint} was made with another config or other "
+                             "targets; run without --resume to start again.")
+        state = saved["state"]
+    try:
+        result = design(images, config, names=names, state=state, progress=progress,
+                        on_checkpoint=lambda s: _save_checkpoint(folder, s, fingerprint))
+    except Interrupted as stop:
+        _save_checkpoint(folder, stop.state, fingerprint)
+        raise
+    write_outputs(folder, result)
+    checkpoint.unlink(missing_ok=True)
+    return result
+
+
+def write_outputs(folder: Path, result: DesignResult) -> None:
+    """design.npz, display and view PNGs, loss curve, design.json."""
+    import io
+
+    d = result.design
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, open_fraction=d.open_fraction, displays=d.displays,
+                        loss_history=d.loss_history, bounds=np.asarray(d.bounds),
+                        names=np.asarray(result.names))
+    write_atomic(folder / "design.npz", buffer.getvalue())
+    for t, name in enumerate(result.names):
+        write_atomic(folder / f"display_{name}.png", encode_png(d.displays[t]))
+        write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
+        for variant in ("initial", "optimized", "open", "regular_pinholes"):
+            view = result.views[variant][t, 0]
+            scaled = view * _gain(view, result.targets[t])
+            write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
+    write_atomic(folder / "loss.png", _loss_plot(d.loss_history))
+    summary = {
+        "schema_version": 1,
+        "targets": list(result.names),
+        "final_loss": float(d.loss_history[-1]) if len(d.loss_history) else None,
+        "iterations": len(d.loss_history),
+        "stopped": d.stopped,
+        "bounds": list(d.bounds),
+        "metrics": result.metrics,
+        "config": to_dict(result.config),
+    }
+    write_atomic(folder / "design.json", json.dumps(summary, indent=2))
+
+
+def _gain(view: np.ndarray, target: np.ndarray) -> float:
+    return float((view * target).sum() / max((view * view).sum(), 1e-20))
+
+
+def _loss_plot(history: np.ndarray) -> bytes:
+    import io
+
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as err:  # pragma: no cover - matplotlib is a dependency
+        raise ImportError("the loss plot needs matplotlib: pip install matplotlib") from err
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=100)
+    ax.semilogy(np.arange(1, len(history) + 1), history)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss (MSE after gain)")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    return buffer.getvalue()
