@@ -215,6 +215,10 @@ def optimize(
                 total = total + w * loss
         return total / target_t.shape[0]
 
+    # SGD steps on the summed squared error over the view (the dissertation's per-pixel scale:
+    # its lr 0.8 is meaningless on a mean); Adam is invariant to the scale.
+    scale = float(target_t[0].numel()) if settings.method == "sgd" else 1.0
+
     def snapshot(iteration: int) -> dict[str, Any]:
         return {
             "iteration": iteration,
@@ -244,7 +248,7 @@ def optimize(
                     f"the loss became {value} at iteration {iteration}; lower the learning rate "
                     f"(now {settings.learning_rate}) or use precision float64."
                 )
-            loss.backward()
+            (loss * scale).backward()
             opt.step()
             state["history"].append(value)
             if value < state["best"] * (1 - settings.plateau_tolerance):

@@ -31,8 +31,8 @@ import numpy as np
 __all__ = ["stratified_sample_count", "trace_tan_window", "trace_view"]
 
 HOLE_AXES = ("straight", "chief_ray")
-#: Rays traced at once; bounds memory (about 40 float64 arrays of this length live at a time).
-RAYS_PER_CHUNK = 1 << 18
+#: Rays traced at once; bounds memory (a few dozen float64 arrays of this length live at a time).
+RAYS_PER_CHUNK = 1 << 16
 #: The 3x3 cell search is exact only while no hole reaches beyond its neighbouring cells.
 MAX_RADIUS_PER_PITCH = 1.5
 #: Sample dimensions: view tan x, view tan y, pupil radius^2 fraction, pupil angle fraction.
@@ -115,7 +115,7 @@ def trace_tan_window(
     seed: int = 0,
     plate: bool = True,
 ) -> np.ndarray:
-    """Like trace_view, but over any tan-rectangle (tan_x_range, tan_y_range) = ((lo, hi), (lo, hi)).
+    """Like trace_view, but over any tan-rectangle: tan_x_range, tan_y_range = (lo, hi), (lo, hi).
 
     Column j covers tan x in [lo + j dx, lo + (j + 1) dx]; row i covers tan y in
     [hi - (i + 1) dy, hi - i dy] (row 0 top). Returns (C, ny_view, nx_view) float64.
@@ -148,7 +148,7 @@ def trace_tan_window(
         row = (pixel_index // nx_view)[:, None]  # (P, 1)
         col = (pixel_index % nx_view)[:, None]
         jitter = rng.random((pixel_index.size, n_samples, SAMPLE_DIMS))
-        unit = (strata_offsets[None, :, :] + jitter / strata_per_dim)  # (P, N, 4) in [0, 1)
+        unit = strata_offsets[None, :, :] + jitter / strata_per_dim  # (P, N, 4) in [0, 1)
 
         # View direction, uniform over the pixel's tan-box.
         vx = tan_x_range[0] + (col + unit[..., 0]) * tan_x_step
@@ -190,7 +190,7 @@ def _passes_plate(
     top_xy: tuple[np.ndarray, np.ndarray],
     bottom_xy: tuple[np.ndarray, np.ndarray],
 ) -> np.ndarray:
-    """True where the ray passes one and the same hole at the bottom face, mid-plane and top face."""
+    """True where the ray passes one and the same hole at the bottom face, mid-plane, top face."""
     ny_cells, nx_cells = radii.shape
     px, py = pitch_mm
     z_mid = gap_mm + thickness_mm / 2.0
@@ -213,7 +213,8 @@ def _passes_plate(
             col = col_mid + d_col
             inside = (row >= 0) & (row < ny_cells) & (col >= 0) & (col < nx_cells)
             # The plate is opaque beyond its grid: such cells count as closed.
-            r = np.where(inside, radii[np.clip(row, 0, ny_cells - 1), np.clip(col, 0, nx_cells - 1)], 0.0)
+            cell_radius = radii[np.clip(row, 0, ny_cells - 1), np.clip(col, 0, nx_cells - 1)]
+            r = np.where(inside, cell_radius, 0.0)
             centre_x = (col - (nx_cells - 1) / 2.0) * px
             centre_y = ((ny_cells - 1) / 2.0 - row) * py
             if hole_axis == "chief_ray":
@@ -236,7 +237,7 @@ def _display_radiance(
     display: np.ndarray, display_size_mm: tuple[float, float], x: np.ndarray, y: np.ndarray
 ) -> np.ndarray:
     """Radiance (C, *x.shape) of the piecewise-constant display at (x, y); 0 off the display."""
-    n_channels, ny, nx = display.shape
+    _, ny, nx = display.shape
     width, height = display_size_mm
     col = np.floor((x + width / 2.0) / width * nx).astype(np.int64)
     row = np.floor((height / 2.0 - y) / height * ny).astype(np.int64)
@@ -247,7 +248,7 @@ def _display_radiance(
 
 def _strata_per_dim(samples_per_pixel: int) -> int:
     # Integer fourth root, robust to float rounding (e.g. 4096 ** 0.25 = 7.999...).
-    k = max(1, int(round(samples_per_pixel ** (1.0 / SAMPLE_DIMS))))
+    k = max(1, round(samples_per_pixel ** (1.0 / SAMPLE_DIMS)))
     while k**SAMPLE_DIMS > samples_per_pixel:
         k -= 1
     return k

@@ -1,0 +1,230 @@
+"""Independent checks of the optical model: analytic cases, a per-ray Monte Carlo reference
+(tests/reference_tracer.py, which shares no code with the model) and float64 gradient checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from reference_tracer import trace_view
+
+from aperture_fab.model import Renderer, render_open
+from aperture_fab.scene import Display, Eye, Plate, Scene, display_fov_deg
+
+
+def make_scene(*, cells=(12, 12), pitch=0.25, gap=10.0, thickness=0.0, axis="straight",
+               pixels=(60, 60), size=15.0, pupil=4.0, relief=10.0, focus=None, view=(32, 32),
+               fov=None, positions=((0.0, 0.0),)) -> Scene:
+    display = Display(size, size, pixels)
+    plate = Plate(cells, (pitch, pitch), gap, thickness, axis)
+    distance = gap + thickness + relief
+    eye = Eye(pupil, relief, fov or display_fov_deg(display, distance), view, focus,
+              tuple(positions), tuple(1.0 for _ in positions))
+    return Scene(display, plate, eye)
+
+
+def render(scene: Scene, a: np.ndarray, display: np.ndarray, position: int = 0,
+           dtype=torch.float64) -> np.ndarray:
+    renderer = Renderer(scene, dtype=dtype)
+    view = renderer.render(torch.as_tensor(a, dtype=dtype), torch.as_tensor(display, dtype=dtype),
+                           position)
+    return view.numpy()
+
+
+def reference(scene: Scene, a: np.ndarray, display: np.ndarray, position: int = 0,
+              samples: int = 4096, seed: int = 0) -> np.ndarray:
+    plate, eye = scene.plate, scene.eye
+    radii = np.sqrt(a * plate.pitch_mm[0] * plate.pitch_mm[1] / math.pi)
+    return trace_view(display, (scene.display.width_mm, scene.display.height_mm), radii,
+                      plate.pitch_mm, plate.gap_mm, plate.thickness_mm, plate.hole_axis,
+                      eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm, eye.fov_deg,
+                      eye.view_pixels, eye_position_mm=eye.positions_mm[position],
+                      tilt_target_mm=eye.positions_mm[0], samples_per_pixel=samples, seed=seed)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    peak = max(float(np.abs(b).max()), 1e-12)
+    return 10 * math.log10(peak**2 / float(np.mean((a - b) ** 2)))
+
+
+# -- analytic cases ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("hole_col, hole_row, eye_x", [(40, 40, 0.0), (52, 31, 0.0),
+                                                        (36, 44, 1.5)])
+@pytest.mark.parametrize("thickness", [0.0, 0.3])
+def test_single_pinhole_maps_display_point_to_direction(hole_col, hole_row, eye_x, thickness):
+    """A bright display dot at x_d seen through one hole appears at tan = (x_d - x_h) / h with
+    h = gap + thickness / 2, within 0.1 view pixel."""
+    cells = (80, 80)
+    view = (64, 64)
+    tan_span = 0.08  # a narrow field around the expected direction: fine view pixels
+    scene = make_scene(cells=cells, pitch=0.25, thickness=thickness, pixels=(800, 800),
+                       size=20.0, view=view, positions=((eye_x, 0.0),),
+                       fov=(math.degrees(2 * math.atan(tan_span)),) * 2)
+    a = np.zeros((cells[1], cells[0]))
+    a[hole_row, hole_col] = 0.05
+    xs, ys = scene.plate.cell_centres_mm()
+    hx, hy = xs[hole_col], ys[hole_row]
+    h = scene.pinhole_height_mm
+    # Put the dot where the hole is seen at a small angle inside the view field.
+    target_tan = (0.021, -0.013)
+    dx, dy = scene.display.pixel_centres_mm()
+    col = int(np.argmin(np.abs(dx - (hx + h * target_tan[0]))))
+    row = int(np.argmin(np.abs(dy - (hy + h * target_tan[1]))))
+    display = np.zeros((1, 800, 800))
+    display[0, row, col] = 1.0
+    # The eye must see the hole: shift the eye so the chief ray passes near it.
+    s_b = scene.plate_distance_mm
+    offset = (hx - target_tan[0] * s_b, hy - target_tan[1] * s_b)
+    scene = make_scene(cells=cells, pitch=0.25, thickness=thickness, pixels=(800, 800),
+                       size=20.0, view=view, positions=(offset,),
+                       fov=(math.degrees(2 * math.atan(tan_span)),) * 2)
+    img = render(scene, a, display)[0]
+    vx, vy = scene.eye.view_directions()
+    total = img.sum()
+    assert total > 0
+    cx = float((img.sum(0) * vx).sum() / total)
+    cy = float((img.sum(1) * vy).sum() / total)
+    step = scene.eye.view_step
+    assert abs(cx - (dx[col] - hx) / h) < 0.1 * step[0]
+    assert abs(cy - (dy[row] - hy) / h) < 0.1 * step[1]
+
+
+def test_uniform_display_thin_plate_passes_open_fraction():
+    """Uniform white display, thin plate, holes of open-area fraction a: the view is a times
+    the open view (within 1 %)."""
+    # The pupil holds a whole number of holes, so single view pixels fluctuate by about
+    # 1 / sqrt(holes at the pupil edge); a 0.1 mm pitch keeps that under 1 % too.
+    scene = make_scene(cells=(250, 250), pitch=0.1, pixels=(100, 100), size=25.0,
+                       view=(16, 16), fov=(20.0, 20.0))
+    white = np.ones((1, 100, 100))
+    open_view = render_open(scene, torch.as_tensor(white)).numpy()
+    for a in (0.05, 0.2, 0.6):
+        view = render(scene, np.full((250, 250), a), white)
+        assert view.mean() == pytest.approx(a * open_view.mean(), rel=0.01)
+        np.testing.assert_allclose(view, a * open_view, rtol=0.01)
+
+
+def two_disk_overlap(r: float, d: float) -> float:
+    if d >= 2 * r:
+        return 0.0
+    return 2 * r**2 * math.acos(d / (2 * r)) - d / 2 * math.sqrt(4 * r**2 - d**2)
+
+
+@pytest.mark.parametrize("tan", [0.0, 0.1, 0.2, 0.3])
+def test_thick_plate_follows_two_disk_overlap(tan):
+    """Straight holes in a thick plate pass, at view angle theta, the overlap of two disks offset
+    by t tan(theta) (uniform display, infinite focus: every ray of one direction is parallel)."""
+    t, a, pitch = 0.3, 0.5, 0.25
+    scene = make_scene(cells=(160, 160), pitch=pitch, thickness=t, pixels=(50, 50), size=60.0,
+                       view=(61, 1), fov=(2 * math.degrees(math.atan(0.305)), 0.5))
+    view = render(scene, np.full((160, 160), a), np.ones((1, 50, 50)))[0, 0]
+    vx, _ = scene.eye.view_directions()
+    j = int(np.argmin(np.abs(vx - tan)))
+    r = math.sqrt(a * pitch**2 / math.pi)
+    expected = two_disk_overlap(r, t * abs(vx[j])) / pitch**2
+    assert view[j] == pytest.approx(expected, rel=0.01)
+
+
+def test_focused_on_display_reproduces_display_upright():
+    """Open plate (largest holes, thin), eye focused on the display: the view is the display,
+    upright and unmirrored, when view pixels map 1:1 onto display pixels."""
+    n = 24
+    size = 12.0
+    gap, relief = 10.0, 10.0
+    distance = gap + relief
+    scene = make_scene(cells=(48, 48), pitch=0.25, gap=gap, relief=relief, pixels=(n, n),
+                       size=size, view=(n, n), focus=distance,
+                       fov=display_fov_deg(Display(size, size, (n, n)), distance))
+    rng = np.random.default_rng(1)
+    display = rng.random((1, n, n))
+    display[0, 2:6, 2:4] = 1.0  # an asymmetric block near the top-left
+    view = render(scene, np.full((48, 48), scene.plate.max_open_fraction), display)[0]
+    gain = float((view * display[0]).sum() / (view * view).sum())
+    inner = slice(2, n - 2)
+    np.testing.assert_allclose(gain * view[inner, inner], display[0, inner, inner], atol=0.03)
+    assert view[3, 3] > view[3, n - 4] and view[3, 3] > view[n - 4, 3]
+
+
+# -- the Monte Carlo reference ------------------------------------------------------------------
+
+
+CASES = {
+    "thin-straight": dict(thickness=0.0, axis="straight"),
+    "thick-straight": dict(thickness=0.3, axis="straight"),
+    "thick-chief-ray": dict(thickness=0.3, axis="chief_ray"),
+    "offset-eye": dict(thickness=0.2, axis="chief_ray", positions=((1.0, -0.5),)),
+    "finite-focus": dict(thickness=0.2, axis="straight", focus=300.0),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(CASES))
+def test_model_matches_monte_carlo_reference(case):
+    """Random holes (including 0.1 x pitch), smooth random display: PSNR >= 35 dB."""
+    rng = np.random.default_rng(7)
+    kw = CASES[case]
+    scene = make_scene(cells=(40, 40), pitch=0.3, pixels=(120, 120), size=12.0, view=(24, 24),
+                       **kw)
+    radii_share = rng.choice([0.0, 0.1, 0.25, 0.4, 0.5], size=(40, 40))
+    a = math.pi * (radii_share * 0.3) ** 2 / 0.3**2
+    coarse = rng.random((3, 15, 15))
+    display = np.kron(coarse, np.ones((8, 8)))  # 8-pixel blocks: sharp edges, smooth inside
+    model = render(scene, a, display)
+    ref = reference(scene, a, display, samples=16384)
+    assert psnr(model, ref) >= 35.0
+
+
+def test_reference_agrees_on_a_quick_case():
+    """Fast version of the Monte Carlo comparison, run by default."""
+    rng = np.random.default_rng(3)
+    scene = make_scene(cells=(24, 24), pitch=0.3, pixels=(48, 48), size=7.2, view=(10, 10),
+                       thickness=0.2, axis="chief_ray")
+    a = rng.uniform(0.02, 0.6, size=(24, 24))
+    display = np.kron(rng.random((1, 6, 6)), np.ones((8, 8)))
+    assert psnr(render(scene, a, display), reference(scene, a, display, samples=4096)) >= 30.0
+
+
+# -- gradients ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("axis, thickness, focus", [("straight", 0.0, None),
+                                                    ("chief_ray", 0.2, None),
+                                                    ("straight", 0.2, 200.0)])
+def test_gradcheck_float64(axis, thickness, focus):
+    scene = make_scene(cells=(6, 6), pitch=0.5, pixels=(12, 12), size=3.0, view=(4, 4),
+                       thickness=thickness, axis=axis, focus=focus, pupil=2.0)
+    renderer = Renderer(scene, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    a = (0.1 + 0.5 * torch.rand(6, 6, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    d = torch.rand(1, 12, 12, generator=gen, dtype=torch.float64).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, d: renderer.render(a, d), (a, d), eps=1e-6,
+                                    atol=1e-6, rtol=1e-4)
+
+
+def test_float32_matches_float64():
+    rng = np.random.default_rng(0)
+    scene = make_scene(thickness=0.3, axis="chief_ray")
+    a = rng.uniform(0, 0.5, (12, 12))
+    display = rng.random((3, 60, 60))
+    np.testing.assert_allclose(render(scene, a, display, dtype=torch.float32),
+                               render(scene, a, display), atol=2e-5)
+
+
+def test_chunking_does_not_change_the_view():
+    rng = np.random.default_rng(0)
+    scene = make_scene(thickness=0.3, axis="chief_ray")
+    a = torch.as_tensor(rng.uniform(0, 0.5, (12, 12)))
+    display = torch.as_tensor(rng.random((1, 60, 60)))
+    whole = Renderer(scene, dtype=torch.float64).render(a, display)
+    chunked = Renderer(scene, dtype=torch.float64, chunk_pairs=500).render(a, display)
+    torch.testing.assert_close(whole, chunked)
+
+
+def test_wrong_mask_shape_is_a_clear_error():
+    scene = make_scene()
+    with pytest.raises(ValueError, match="open_fraction has shape"):
+        Renderer(scene).render(torch.zeros(5, 5), torch.zeros(1, 60, 60))
