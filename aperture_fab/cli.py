@@ -92,7 +92,9 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
             try:
                 value = float(value)
             except ValueError:
-                raise ValueError(f"{flag} {value!r}: give a distance in mm or 'infinity'.") from None
+                raise ValueError(
+                    f"{flag} {value!r}: give a distance in mm or 'infinity'."
+                ) from None
         elif key == "plate.pitch_mm":
             value = [value, value]
         out[key] = value

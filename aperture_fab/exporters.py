@@ -9,7 +9,9 @@ position for a tilted hole (it is off by at most thickness / 2 * |axis| at eithe
 from __future__ import annotations
 
 import io
+import itertools
 import zipfile
+from collections.abc import Iterator
 from typing import Literal
 
 import numpy as np
@@ -62,18 +64,32 @@ THREEMF_RELS = (
 )
 #: Fast deflate: the model text is large and compresses well even at level 1.
 ZIP_LEVEL = 1
+#: Upper estimates of the model text per vertex and per triangle, and the size above which the
+#: zip entry must be Zip64 (streamed entries are sized before they are written).
+VERTEX_TEXT_BYTES = 80
+TRIANGLE_TEXT_BYTES = 64
+ZIP32_SAFE_BYTES = 2**31
+
+
+def _unit_normals(mesh: PlateMesh) -> np.ndarray:
+    """(F, 3) float64 unit face normals (zero for degenerate faces)."""
+    v = mesh.vertices
+    a, b, c = (v[mesh.faces[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    # Written out: np.cross is several times slower on millions of rows.
+    normal = np.empty_like(e1)
+    normal[:, 0] = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+    normal[:, 1] = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+    normal[:, 2] = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    length = np.sqrt(np.einsum("ij,ij->i", normal, normal))[:, None]
+    return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
 
 
 def stl_bytes(mesh: PlateMesh) -> bytes:
     """Binary STL (little-endian float32, mm) with per-facet unit normals."""
-    v = mesh.vertices
-    corners = v[mesh.faces]  # (F, 3, 3)
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
-    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
     records = np.zeros(len(mesh.faces), dtype=STL_RECORD)
-    records["normal"] = normal
-    records["vertices"] = corners
+    records["vertices"] = mesh.vertices.astype(np.float32)[mesh.faces]
+    records["normal"] = _unit_normals(mesh)
     header = STL_HEADER.ljust(STL_HEADER_BYTES, b" ")
     count = np.array([len(records)], dtype="<u4").tobytes()
     return header + count + records.tobytes()
@@ -111,13 +127,22 @@ def _mm_text(value: float) -> str:
     return f"{value:.{MM_DECIMALS}f}".rstrip("0").rstrip(".")
 
 
-def _rows_text(values: np.ndarray, row_format: str) -> str:
-    """Format each row of a 2D array with row_format (%-style), batch by batch."""
-    parts = []
+def _row_batches(values: np.ndarray, row_format: str) -> Iterator[str]:
+    """Each row of a 2D array formatted with row_format (%-style), a batch of rows at a time."""
     for start in range(0, len(values), TEXT_BATCH_ROWS):
         batch = values[start : start + TEXT_BATCH_ROWS]
-        parts.append((row_format * len(batch)) % tuple(batch.ravel().tolist()))
-    return "".join(parts)
+        yield (row_format * len(batch)) % tuple(batch.ravel().tolist())
+
+
+def _rows_text(values: np.ndarray, row_format: str) -> str:
+    return "".join(_row_batches(values, row_format))
+
+
+def _split_once(text: str, marker: str) -> tuple[str, str]:
+    before, found, after = text.partition(marker)
+    if not found:
+        raise RuntimeError(f"3MF skeleton lacks the placeholder {marker}.")
+    return before, after
 
 
 def threemf_bytes(mesh: PlateMesh) -> bytes:
@@ -140,22 +165,27 @@ def threemf_bytes(mesh: PlateMesh) -> bytes:
     build = etree.SubElement(model, f"{{{THREEMF_CORE_NS}}}build")
     etree.SubElement(build, f"{{{THREEMF_CORE_NS}}}item", objectid="1")
     skeleton = etree.tostring(model, xml_declaration=True, encoding="UTF-8").decode("utf-8")
-    # Millions of vertex elements are built as text: one lxml element each would take minutes.
-    decimals = MM_DECIMALS
-    vertex_text = _rows_text(
-        mesh.vertices, f'<vertex x="%.{decimals}f" y="%.{decimals}f" z="%.{decimals}f"/>'
+    # Millions of vertex elements are streamed as text: one lxml element each would take minutes.
+    head, after_vertices = _split_once(skeleton, "<vertices/>")
+    middle, tail = _split_once(after_vertices, "<triangles/>")
+    mm = f"%.{MM_DECIMALS}f"
+    pieces = itertools.chain(
+        [head, "<vertices>"],
+        _row_batches(mesh.vertices, f'<vertex x="{mm}" y="{mm}" z="{mm}"/>'),
+        ["</vertices>", middle, "<triangles>"],
+        _row_batches(mesh.faces, '<triangle v1="%d" v2="%d" v3="%d"/>'),
+        ["</triangles>", tail],
     )
-    triangle_text = _rows_text(mesh.faces, '<triangle v1="%d" v2="%d" v3="%d"/>')
-    for tag, text in (("vertices", vertex_text), ("triangles", triangle_text)):
-        empty = f"<{tag}/>"
-        if skeleton.count(empty) != 1:
-            raise RuntimeError(f"3MF skeleton has no single empty <{tag}> element.")
-        skeleton = skeleton.replace(empty, f"<{tag}>{text}</{tag}>")
     stream = io.BytesIO()
     with zipfile.ZipFile(stream, "w", zipfile.ZIP_DEFLATED, compresslevel=ZIP_LEVEL) as package:
         package.writestr("[Content_Types].xml", THREEMF_CONTENT_TYPES)
         package.writestr("_rels/.rels", THREEMF_RELS)
-        package.writestr(THREEMF_MODEL_PATH, skeleton.encode("utf-8"))
+        # Zip64 only when needed: some 3MF readers reject it.
+        text_bytes = len(mesh.vertices) * VERTEX_TEXT_BYTES + len(mesh.faces) * TRIANGLE_TEXT_BYTES
+        large = text_bytes > ZIP32_SAFE_BYTES
+        with package.open(THREEMF_MODEL_PATH, "w", force_zip64=large) as model_file:
+            for piece in pieces:
+                model_file.write(piece.encode("utf-8"))
     return stream.getvalue()
 
 

@@ -166,6 +166,19 @@ def _polygon_radius_factor(n: int) -> float:
     return math.sqrt(2 * math.pi / (n * math.sin(2 * math.pi / n)))
 
 
+def _hole_polygons(layout: HoleLayout, index: np.ndarray, n: int) -> np.ndarray:
+    """(K, 2, n, 2) float64 mm: the n-gons of holes `index` at the bottom and top faces,
+    counter-clockwise, vertex k at angle (2k + 1) pi / n, with the area of their circles."""
+    angle = (2 * np.arange(n) + 1) * np.pi / n
+    unit = np.stack([np.cos(angle), np.sin(angle)], axis=1)  # (n, 2)
+    r_poly = layout.radii_mm[index] * _polygon_radius_factor(n)
+    half_shift = 0.5 * layout.thickness_mm * layout.axes[index]
+    centres = np.stack(
+        [layout.centres_mm[index] - half_shift, layout.centres_mm[index] + half_shift], axis=1
+    )  # (K, 2 faces, 2)
+    return centres[:, :, None, :] + r_poly[:, None, None, None] * unit
+
+
 def _ring_template(n: int) -> np.ndarray:
     """Top-face triangles of a hole cell, (n + 4, 3) int64, counter-clockwise seen from +z.
 
@@ -190,6 +203,36 @@ def _wall_template(n: int) -> np.ndarray:
     first = np.stack([k, n + k, k1], axis=1)
     second = np.stack([k1, n + k, n + k1], axis=1)
     return np.concatenate([first, second]).astype(np.int64)
+
+
+def _grid_perimeter(nx: int, ny: int) -> np.ndarray:
+    """Grid corner indices around the cell grid, counter-clockwise from its top-right corner:
+    nx along the top, ny down the left, nx along the bottom, ny up the right side."""
+    width = nx + 1
+    top = np.arange(nx, 0, -1)
+    left = np.arange(ny) * width
+    bottom = ny * width + np.arange(nx)
+    right = np.arange(ny, 0, -1) * width + nx
+    return np.concatenate([top, left, bottom, right]).astype(np.int64)
+
+
+def _frame_template(perimeter: np.ndarray, outer: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """Top-face triangles of the margin frame, counter-clockwise seen from +z.
+
+    outer: the outline's vertex indices, counter-clockwise from its top-right corner (4, or 5
+    with the top-left corner cut). As for holes, each grid edge joins the outline corner beyond
+    it (top edges the top-left, left edges the bottom-left, ...) and one triangle per outline
+    side joins the grid corner where the choice changes.
+    """
+    tr, tl_first, tl_last, bl, br = outer[0], outer[1], outer[-3], outer[-2], outer[-1]
+    side_corner = np.repeat(np.array([tl_first, bl, br, tr]), [nx, ny, nx, ny])
+    fan = np.stack([np.roll(perimeter, -1), perimeter, side_corner], axis=1)
+    grid_tr, grid_tl, grid_bl, grid_br = perimeter[[0, nx, nx + ny, 2 * nx + ny]]
+    bridges = [[tr, tl_first, grid_tr]]
+    if tl_first != tl_last:
+        bridges.append([tl_first, tl_last, grid_tl])
+    bridges += [[tl_last, bl, grid_tl], [bl, br, grid_bl], [br, tr, grid_br]]
+    return np.concatenate([fan, np.array(bridges)]).astype(np.int64)
 
 
 def _side_walls(bottom: np.ndarray, top: np.ndarray) -> np.ndarray:
@@ -265,32 +308,33 @@ def _check_layout(layout: HoleLayout, min_web_mm: float, corner_cut_mm: float) -
 
 
 def _check_web(
-    layout: HoleLayout, index: np.ndarray, corners_xy: np.ndarray, min_web_mm: float
+    layout: HoleLayout, index: np.ndarray, polygon_xy: np.ndarray, min_web_mm: float
 ) -> None:
     """Raise ValueError naming the first cell whose polygon (either face) leaves less than
-    min_web_mm / 2 to its cell's side (so neighbouring holes keep min_web_mm between them).
+    min_web_mm / 2 to a side of its cell (so neighbouring holes keep min_web_mm between them),
+    or touches a side when min_web_mm is 0.
 
-    corners_xy: (K, 2, n, 2) polygon vertices (bottom, top) of the holes in `index`.
+    polygon_xy: (K, 2, n, 2) polygon vertices (bottom, top) of the holes in `index`.
     """
     px, py = layout.pitch_mm
-    rows, cols = layout.cells[index, 0], layout.cells[index, 1]
     nx, ny = layout.grid
-    cell_x = (cols - (nx - 1) / 2) * px
-    cell_y = ((ny - 1) / 2 - rows) * py
-    reach_x = np.abs(corners_xy[..., 0] - cell_x[:, None, None]).max(axis=(1, 2))
-    reach_y = np.abs(corners_xy[..., 1] - cell_y[:, None, None]).max(axis=(1, 2))
-    allowed_x = px / 2 - min_web_mm / 2
-    allowed_y = py / 2 - min_web_mm / 2
-    # Strictly inside the square even with no web, or the ring would have flat triangles.
-    bad = (reach_x > allowed_x) | (reach_y > allowed_y) | (reach_x >= px / 2) | (reach_y >= py / 2)
+    rows, cols = layout.cells[index, 0], layout.cells[index, 1]
+    # Cell sides computed exactly as build_mesh computes the grid corner vertices.
+    left, right = (cols - nx / 2) * px, (cols + 1 - nx / 2) * px
+    top, bottom = (ny / 2 - rows) * py, (ny / 2 - rows - 1) * py
+    x, y = polygon_xy[..., 0].reshape(len(index), -1), polygon_xy[..., 1].reshape(len(index), -1)
+    gap = np.stack(
+        [x.min(axis=1) - left, right - x.max(axis=1), y.min(axis=1) - bottom, top - y.max(axis=1)]
+    ).min(axis=0)
+    bad = (gap < min_web_mm / 2) | (gap <= 0)
     if np.any(bad):
         first = int(np.argmax(bad))
         cell = (int(rows[first]), int(cols[first]))
         raise ValueError(
-            f"Hole in cell {cell} (radius {layout.radii_mm[index[first]]:g} mm) reaches "
-            f"{max(reach_x[first], reach_y[first]):g} mm from its cell centre as a polygon at one "
-            f"face; allowed: below {min(allowed_x, allowed_y):g} mm (half pitch minus half the "
-            f"{min_web_mm:g} mm web). Make the hole smaller, its tilt smaller, or the pitch larger."
+            f"Hole in cell {cell} (radius {layout.radii_mm[index[first]]:g} mm) comes within "
+            f"{gap[first]:g} mm of its cell's side as a polygon at one face; allowed: at least "
+            f"half the {min_web_mm:g} mm web, and more than 0. Make the hole smaller, its tilt "
+            "smaller, or the pitch larger."
         )
 
 
@@ -324,9 +368,6 @@ def build_mesh(
     grid_count = (nx + 1) * (ny + 1)
     grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
 
-    def grid_index(b: np.ndarray, a: np.ndarray) -> np.ndarray:
-        return b * (nx + 1) + a
-
     # Outline loop, counter-clockwise from the top-right corner (the frame's outer boundary).
     if frame:
         outline_xy = np.array(outline_points_mm(layout, corner_cut_mm), dtype=np.float64)
@@ -340,14 +381,7 @@ def build_mesh(
     groups: list[tuple[int, np.ndarray, int]] = []  # (n, hole indices, first vertex)
     for n in np.unique(n_of_hole).tolist():
         index = np.flatnonzero(n_of_hole == n)
-        angle = (2 * np.arange(n) + 1) * np.pi / n
-        unit = np.stack([np.cos(angle), np.sin(angle)], axis=1)  # (n, 2)
-        r_poly = layout.radii_mm[index] * _polygon_radius_factor(n)
-        half_shift = 0.5 * thickness * layout.axes[index]
-        centres = np.stack(
-            [layout.centres_mm[index] - half_shift, layout.centres_mm[index] + half_shift], axis=1
-        )  # (K, 2 faces, 2)
-        polygon = centres[:, :, None, :] + r_poly[:, None, None, None] * unit  # (K, 2, n, 2)
+        polygon = _hole_polygons(layout, index, n)
         _check_web(layout, index, polygon, min_web_mm)
         groups.append((n, index, offset))
         blocks_xy.append(polygon.reshape(-1, 2))
@@ -358,23 +392,16 @@ def build_mesh(
     xy = np.concatenate(blocks_xy)
     z = np.concatenate(blocks_z)
     faces: list[np.ndarray] = []
-    hole_of_cell = np.full(ny * nx, -1, dtype=np.int64)
-    hole_of_cell[layout.cells[:, 0] * nx + layout.cells[:, 1]] = np.arange(layout.count)
+    has_hole = np.zeros(ny * nx, dtype=bool)
+    has_hole[layout.cells[:, 0] * nx + layout.cells[:, 1]] = True
 
     def cell_corners(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """(K, 4) grid indices of the cells' TR, TL, BL, BR corners (bottom layer)."""
-        return np.stack(
-            [
-                grid_index(rows, cols + 1),
-                grid_index(rows, cols),
-                grid_index(rows + 1, cols),
-                grid_index(rows + 1, cols + 1),
-            ],
-            axis=1,
-        )
+        tl = rows * (nx + 1) + cols
+        return np.stack([tl + 1, tl, tl + nx + 1, tl + nx + 2], axis=1)
 
     # Closed cells: two triangles per face.
-    closed = np.flatnonzero(hole_of_cell < 0)
+    closed = np.flatnonzero(~has_hole)
     corners = cell_corners(closed // nx, closed % nx)
     top_quad = np.array([[0, 1, 2], [0, 2, 3]])
     faces.append((corners[:, top_quad] + layer_count).reshape(-1, 3))
@@ -393,32 +420,12 @@ def build_mesh(
         wall_table = polygon_ids.reshape(k_holes, 2 * n)
         faces.append(wall_table[:, _wall_template(n)].reshape(-1, 3))
 
-    # Perimeter of the cell grid, counter-clockwise from its top-right corner.
-    a_top, b_left = np.arange(nx, 0, -1), np.arange(ny)
-    perimeter = np.concatenate(
-        [
-            grid_index(np.zeros(nx, np.int64), a_top),
-            grid_index(b_left, np.zeros(ny, np.int64)),
-            grid_index(np.full(nx, ny), np.arange(nx)),
-            grid_index(np.arange(ny, 0, -1), np.full(ny, nx)),
-        ]
-    )
+    perimeter = _grid_perimeter(nx, ny)
     if frame:
         outer = grid_count + np.arange(len(outline_xy))
-        tr, tl_first, tl_last, bl, br = outer[0], outer[1], outer[-3], outer[-2], outer[-1]
-        side_corner = np.repeat(np.array([tl_first, bl, br, tr]), [nx, ny, nx, ny])
-        nxt = np.roll(perimeter, -1)
-        frame_top = [np.stack([nxt, perimeter, side_corner], axis=1)]
-        corner_at = perimeter[[0, nx, nx + ny, 2 * nx + ny]]  # TR, TL, BL, BR of the grid
-        frame_top.append(np.array([[tr, tl_first, corner_at[0]]]))
-        if corner_cut_mm > 0:
-            frame_top.append(np.array([[tl_first, tl_last, corner_at[1]]]))
-        frame_top.append(
-            np.array([[tl_last, bl, corner_at[1]], [bl, br, corner_at[2]], [br, tr, corner_at[3]]])
-        )
-        ring_faces = np.concatenate(frame_top)
-        faces.append(ring_faces + layer_count)
-        faces.append(ring_faces[:, ::-1])
+        frame_top = _frame_template(perimeter, outer, nx, ny)
+        faces.append(frame_top + layer_count)
+        faces.append(frame_top[:, ::-1])
         loop = outer
     else:
         loop = perimeter

@@ -34,7 +34,7 @@ from aperture_fab.scene import Scene
 
 __all__ = ["Renderer", "render_open"]
 
-#: Display-pixel spacing of the blur-stack radius levels (finer levels, smaller interpolation error).
+#: Spacing of the blur-stack radius levels in display pixels (finer: smaller interpolation error).
 LEVEL_SPACING_PX = 0.5
 MAX_LEVELS = 24
 #: Quadrature points over a window disk when building the blur kernels.
@@ -100,12 +100,13 @@ def _window_kernels(
     """
     wx, wy = pixel_mm
     reach = float(radii_mm.max()) + max(box_mm) / 2
-    k = int(math.ceil(reach / min(wx, wy) + 1))
+    k = math.ceil(reach / min(wx, wy) + 1)
     off = np.arange(-k, k + 1)
     # Disk quadrature: equal-area rings, uniform spokes.
     rings = np.sqrt((np.arange(DISK_RINGS) + 0.5) / DISK_RINGS)
     angles = 2 * np.pi * (np.arange(DISK_SPOKES) + 0.5) / DISK_SPOKES
-    unit = np.stack([np.outer(rings, np.cos(angles)).ravel(), np.outer(rings, np.sin(angles)).ravel()])
+    unit = np.stack([np.outer(rings, np.cos(angles)).ravel(),
+                     np.outer(rings, np.sin(angles)).ravel()])
     kernels = []
     for radius in radii_mm:
         points = unit * radius if radius > 0 else np.zeros((2, 1))
@@ -137,23 +138,32 @@ class _PairWeights(torch.autograd.Function):
     backward, because this runs on millions of pairs per view."""
 
     @staticmethod
-    def forward(ctx, radius, hole, lens_offset, pupil_offset, top_scale, pupil_r, level_scale):  # type: ignore[no-untyped-def]
+    def forward(ctx, radius, hole, lens_offset, pupil_offset, top_scale, pupil_r, level_scale):
         r1 = radius[hole]
-        r2 = r1 * top_scale
         d = lens_offset
-        inside = d <= (r1 - r2).abs()
-        partial = (d < r1 + r2) & ~inside
-        d_s = d.clamp_min(_EPS)
-        c1 = ((d_s**2 + r1**2 - r2**2) / (2 * d_s * r1)).clamp(-1, 1)
-        c2 = ((d_s**2 + r2**2 - r1**2) / (2 * d_s * r2)).clamp(-1, 1)
-        t1, t2 = torch.acos(c1), torch.acos(c2)
-        kite = (r1 * torch.sin(t1)) * d_s  # half-chord times centre distance
-        small = torch.minimum(r1, r2)
-        area = torch.where(partial, r1**2 * t1 + r2**2 * t2 - kite,
-                           torch.where(inside, math.pi * small**2, torch.zeros_like(r1)))
-        # dA/dr1 = 2 r1 theta1, dA/dr2 = 2 r2 theta2, and r2 = top_scale * r1.
-        darea = torch.where(partial, 2 * r1 * t1 + 2 * top_scale * r2 * t2,
-                            torch.where(inside, 2 * math.pi * small**2 / r1, torch.zeros_like(r1)))
+        if top_scale == 1.0:
+            # Equal disks (infinite focus): A = 2 r^2 acos(d / 2r) - (d / 2) sqrt(4 r^2 - d^2),
+            # dA/dr = 4 r acos(d / 2r).
+            half = (d / (2 * r1)).clamp(max=1.0)
+            theta = torch.acos(half)
+            area = 2 * r1 * r1 * theta - d * r1 * (1 - half * half).sqrt()
+            darea = 4 * r1 * theta
+        else:
+            r2 = r1 * top_scale
+            inside = d <= (r1 - r2).abs()
+            partial = (d < r1 + r2) & ~inside
+            d_s = d.clamp_min(_EPS)
+            c1 = ((d_s * d_s + r1 * r1 - r2 * r2) / (2 * d_s * r1)).clamp(-1, 1)
+            c2 = ((d_s * d_s + r2 * r2 - r1 * r1) / (2 * d_s * r2)).clamp(-1, 1)
+            t1, t2 = torch.acos(c1), torch.acos(c2)
+            kite = (r1 * torch.sin(t1)) * d_s  # half-chord times centre distance
+            small = torch.minimum(r1, r2)
+            zero = torch.zeros_like(r1)
+            area = torch.where(partial, r1 * r1 * t1 + r2 * r2 * t2 - kite,
+                               torch.where(inside, math.pi * small * small, zero))
+            # dA/dr1 = 2 r1 theta1, dA/dr2 = 2 r2 theta2, and r2 = top_scale * r1.
+            darea = torch.where(partial, 2 * r1 * t1 + 2 * top_scale * r2 * t2,
+                                torch.where(inside, 2 * math.pi * small * small / r1, zero))
         # Pupil clipping: share of an equal-area disk inside the pupil's (locally straight) edge.
         lens_r = (area / math.pi).clamp_min(_EPS).sqrt()
         x = (pupil_r - pupil_offset) / lens_r
@@ -170,7 +180,7 @@ class _PairWeights(torch.autograd.Function):
         return weight, level
 
     @staticmethod
-    def backward(ctx, grad_weight, grad_level):  # type: ignore[no-untyped-def]
+    def backward(ctx, grad_weight, grad_level):
         hole, dweight, dlevel = ctx.saved_tensors
         grad_r = grad_weight * dweight + grad_level * dlevel
         grad_radius = torch.zeros(ctx.cells, dtype=grad_r.dtype, device=grad_r.device)
@@ -317,7 +327,8 @@ class Renderer:
             grid_xy=torch.stack([cat[3], cat[4]], -1).to(self.dtype),
         )
 
-    def _normalize(self, x_mm: torch.Tensor, y_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _normalize(self, x_mm: torch.Tensor, y_mm: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
         display = self.scene.display
         width = display.pixels[0] + 2 * self.pad
         height = display.pixels[1] + 2 * self.pad
@@ -402,7 +413,8 @@ def render_open(
     y = np.broadcast_to(y, x.shape)
     col = (x + disp.width_mm / 2) / disp.pixel_mm[0] - 0.5
     row = (disp.height_mm / 2 - y) / disp.pixel_mm[1] - 0.5
-    grid = np.stack([2 * (col + 0.5) / disp.pixels[0] - 1, 2 * (row + 0.5) / disp.pixels[1] - 1], -1)
+    grid = np.stack([2 * (col + 0.5) / disp.pixels[0] - 1,
+                     2 * (row + 0.5) / disp.pixels[1] - 1], -1)
     ny, nx = grid.shape[:2]
     g = torch.as_tensor(grid.reshape(1, ny * nx, -1, 2), dtype=dtype, device=dev)
     out = F.grid_sample(display.unsqueeze(0), g, mode="bilinear", padding_mode="zeros",

@@ -173,7 +173,8 @@ def optimize(
     shown_t = torch.as_tensor(target_displays, dtype=dtype, device=device)
     expected = (scene.eye.view_pixels[1], scene.eye.view_pixels[0])
     if target_t.ndim != 4 or tuple(target_t.shape[-2:]) != expected:
-        raise ValueError(f"targets have shape {tuple(target_t.shape)}; expected (T, C, *{expected}).")
+        raise ValueError(f"targets have shape {tuple(target_t.shape)}; "
+                         f"expected (T, C, *{expected}).")
     if state is None:
         state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
                                (lo, hi))

@@ -197,7 +197,9 @@ class Eye:
                     f"{MAX_PIXELS} per axis."
                 )
         if len(self.positions_mm) == 0:
-            raise ValueError("eye.positions_mm is empty; give at least one position, e.g. [[0, 0]].")
+            raise ValueError(
+                "eye.positions_mm is empty; give at least one position, e.g. [[0, 0]]."
+            )
         for pos in self.positions_mm:
             if not (len(pos) == 2 and all(math.isfinite(c) for c in pos)):
                 raise ValueError(f"eye.positions_mm holds {pos!r}; each must be [x_mm, y_mm].")

@@ -77,7 +77,8 @@ class OptimizerSettings:
                        "Typical: 0.01 to 0.1 for Adam, 0.1 to 1 for SGD.", 100.0)
         if not (math.isfinite(self.momentum) and 0 <= self.momentum < 1):
             raise ValueError(
-                f"optimizer.momentum = {self.momentum!r} is out of range; allowed: 0 <= momentum < 1."
+                f"optimizer.momentum = {self.momentum!r} is out of range; "
+                "allowed: 0 <= momentum < 1."
             )
         for name, value, low in (
             ("optimizer.iterations", self.iterations, 1),

@@ -32,7 +32,7 @@ import numpy as np
 
 from aperture_fab.layout import HoleLayout
 
-__all__ = ["StepSummary", "read_step_summary", "step_bytes"]
+__all__ = ["StepSummary", "build_solid", "read_step_summary", "shape_summary", "step_bytes"]
 
 #: Smallest distance kept between hole walls, the outline and tile cut lines (0.1 um): below
 #: this OCCT would see touching geometry; far below any process's minimum web.
@@ -469,19 +469,8 @@ def step_bytes(layout: HoleLayout, progress: Callable[[int], None] | None = None
 def read_step_summary(data: bytes) -> StepSummary:
     """Read STEP bytes with OCCT and summarise the shape (for tests and validation)."""
     _import_ocp()
-    from OCP.Bnd import Bnd_Box
-    from OCP.BRep import BRep_Tool
-    from OCP.BRepAdaptor import BRepAdaptor_Surface
-    from OCP.BRepBndLib import BRepBndLib
-    from OCP.BRepCheck import BRepCheck_Analyzer
-    from OCP.BRepGProp import BRepGProp
-    from OCP.GeomAbs import GeomAbs_Cylinder, GeomAbs_SurfaceOfExtrusion
-    from OCP.GProp import GProp_GProps
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.STEPControl import STEPControl_Reader
-    from OCP.TopAbs import TopAbs_FACE, TopAbs_SHELL, TopAbs_SOLID
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
 
     reader = STEPControl_Reader()
     with quiet_occt(), tempfile.TemporaryDirectory(prefix="aperture_fab_step_") as folder:
@@ -491,7 +480,26 @@ def read_step_summary(data: bytes) -> StepSummary:
         if reader.ReadFile(path) != IFSelect_RetDone:
             raise ValueError("The data is not a STEP file OCCT can read.")
         reader.TransferRoots()
-    shape = reader.OneShape()
+    return shape_summary(reader.OneShape())
+
+
+def shape_summary(shape: Any) -> StepSummary:
+    """Summarise an OCCT shape (TopoDS_Shape), e.g. build_solid's, before any file round trip.
+
+    STEP readers heal some faults (wire orientation) on the way in, so check the solid itself too.
+    """
+    _import_ocp()
+    from OCP.Bnd import Bnd_Box
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepBndLib import BRepBndLib
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GeomAbs import GeomAbs_Cylinder, GeomAbs_SurfaceOfExtrusion
+    from OCP.GProp import GProp_GProps
+    from OCP.TopAbs import TopAbs_FACE, TopAbs_SHELL, TopAbs_SOLID
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
 
     def shapes(kind: Any) -> list[Any]:
         found = []
