@@ -7,7 +7,9 @@ import sys
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
+
+import numpy as np
 
 __all__ = ["main"]
 
@@ -125,15 +127,81 @@ def _cmd_presets(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_fabrication_flags(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("fabrication")
+    group.add_argument("--process", help="fabrication process (see `aperture-fab processes`); "
+                       "default resin")
+    group.add_argument("--force", action="store_true", default=None,
+                       help="write parts the process cannot make, with the violations listed")
+    group.add_argument("--step", action="store_true", default=None,
+                       help="also write plate.step (a .step --out implies it)")
+
+
+def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
+    from aperture_fab.fabricate import fabrication_settings
+
+    return fabrication_settings(extra, {"process": args.process, "force": args.force,
+                                        "step": args.step})
+
+
+def _cmd_processes(args: argparse.Namespace) -> int:
+    from aperture_fab.process import PROCESSES, process_summary
+
+    for process in PROCESSES.values():
+        print(process_summary(process))
+        print()
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from aperture_fab.config import parse_toml, resolve
+    from aperture_fab.fabricate import FILE_NAMES, PART_FORMATS, PartFormat, make_part
+    from aperture_fab.pipeline import output_folder, write_part
+
+    config_path = args.config or args.design.parent / "design.toml"
+    try:
+        data = np.load(args.design)
+        open_fraction = np.asarray(data["open_fraction"], dtype=np.float64)
+    except (OSError, KeyError, ValueError) as err:
+        raise ValueError(f"{args.design}: not a design.npz written by `aperture-fab design` "
+                         f"({err}).") from err
+    try:
+        text = config_path.read_text()
+    except OSError as err:
+        raise ValueError(f"{config_path}: cannot read the design's config ({err.strerror}); give "
+                         "it with --config.") from err
+    config = resolve(args.preset, parse_toml(text, str(config_path)),
+                     file_source=str(config_path))
+    fabrication = _fabrication(args, config.extra)
+    folder = output_folder(args.out)
+    suffix = args.out.suffix.lower().lstrip(".")
+    suffix = {"stp": "step"}.get(suffix, suffix)
+    formats: tuple[PartFormat, ...]
+    if suffix in PART_FORMATS:
+        formats = (cast(PartFormat, suffix),)
+    else:
+        formats = tuple(f for f in PART_FORMATS if f != "step" or fabrication.step)
+    part = make_part(open_fraction, config.scene, fabrication)
+    written = write_part(folder, part, fabrication, formats, progress=not args.quiet)
+    if suffix in PART_FORMATS and args.out.name != FILE_NAMES[suffix]:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        written[0].replace(args.out)
+        written[0] = args.out
+    print(f"{part.layout.count} holes, process {fabrication.process.name}: "
+          + ", ".join(str(p) for p in written))
+    return 0
+
+
 def _cmd_design(args: argparse.Namespace) -> int:
     from aperture_fab.optimize import Interrupted
     from aperture_fab.pipeline import output_folder, run_design
 
     config = _load_config(args)
+    fabrication = _fabrication(args, config.extra)
     folder = output_folder(args.out)
     try:
-        result = run_design(args.targets, args.out, config, resume=args.resume,
-                            progress=not args.quiet)
+        result = run_design(args.targets, args.out, config, fabrication=fabrication,
+                            resume=args.resume, progress=not args.quiet)
     except Interrupted as stop:
         print(f"\ninterrupted at iteration {stop.state['iteration']}; checkpoint saved in "
               f"{folder}. Continue with the same command and --resume.", file=sys.stderr)
@@ -146,6 +214,12 @@ def _cmd_design(args: argparse.Namespace) -> int:
     print(header)
     for t, name in enumerate(result.names):
         print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in m))
+    if result.part is not None:
+        layout = result.part.layout
+        print(f"part: {layout.count} holes, {len(layout.violations)} rule violation(s) resolved; "
+              f"{result.part.report.face_count} triangles, watertight")
+        for v in layout.violations[:10]:
+            print(f"  {v.rule}: {v.resolution}")
     return 0
 
 
@@ -169,10 +243,31 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue an interrupted run from its checkpoint in the output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_config_flags(p)
+    _add_fabrication_flags(p)
     p.set_defaults(func=_cmd_design)
+
+    p = sub.add_parser("export", help="rebuild part files from a saved design",
+                       description="Rebuild the part from a design.npz (for another process or "
+                       "format) without re-optimizing. The design's config is read from "
+                       "design.toml beside it unless --config is given.",
+                       epilog="examples:\n  aperture-fab export outputs/x/design.npz --out "
+                       "outputs/x/plate.step\n  aperture-fab export outputs/x/design.npz "
+                       "--process etched-foil --out outputs/foil/",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("design", type=Path, metavar="DESIGN.npz")
+    p.add_argument("--out", type=Path, required=True,
+                   help="a part file (.stl .3mf .dxf .svg .step .csv) or a folder (all formats)")
+    p.add_argument("--config", type=Path, metavar="FILE.toml",
+                   help="the design's config (default: design.toml beside DESIGN.npz)")
+    p.add_argument("--preset", help=argparse.SUPPRESS)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_fabrication_flags(p)
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("presets", help="list the presets with their key numbers")
     p.set_defaults(func=_cmd_presets)
+    p = sub.add_parser("processes", help="list the fabrication processes and their rules")
+    p.set_defaults(func=_cmd_processes)
     return parser
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +19,15 @@ import torch
 
 from aperture_fab.baselines import elemental_display, regular_pinholes
 from aperture_fab.config import Config, to_dict, to_toml
+from aperture_fab.fabricate import (
+    PART_FORMATS,
+    FabricationSettings,
+    Part,
+    PartFormat,
+    design_bounds,
+    make_part,
+    part_files,
+)
 from aperture_fab.images import decode_image, encode_png, is_grey, resample
 from aperture_fab.model import Renderer, render_open
 from aperture_fab.optimize import (
@@ -30,6 +39,7 @@ from aperture_fab.optimize import (
     psnr_db,
     resolve_device,
 )
+from aperture_fab.process import check_plate
 
 __all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
 
@@ -47,6 +57,7 @@ class DesignResult:
     views: {"initial" | "optimized" | "open" | "regular_pinholes": (T, P, C, ny, nx) float64}
         for every target and eyebox position.
     metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position.
+    part: the part as made (None when no fabrication settings were given).
     """
 
     config: Config
@@ -55,6 +66,7 @@ class DesignResult:
     targets: np.ndarray
     views: dict[str, np.ndarray]
     metrics: dict[str, dict[str, list[float]]]
+    part: Part | None = None
 
 
 def _prepare(config: Config, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -75,16 +87,22 @@ def design(
     config: Config,
     *,
     names: Sequence[str] | None = None,
-    bounds: tuple[float, float] | None = None,
+    fabrication: FabricationSettings | None = None,
     state: dict[str, Any] | None = None,
     on_checkpoint: Any = None,
     progress: bool = False,
 ) -> DesignResult:
-    """Design a plate for target images (each (3, H, W) linear RGB in [0, 1])."""
+    """Design a plate for target images (each (3, H, W) linear RGB in [0, 1]); with
+    `fabrication`, designed within what its process can make and made into a part."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
+    bounds = None
+    if fabrication is not None:
+        if not fabrication.force:
+            check_plate(fabrication.process, scene.plate)  # refuse before optimizing
+        bounds = design_bounds(scene, fabrication.process)
     targets, shown = _prepare(config, images)
     result = optimize(scene, targets, shown, settings, bounds=bounds, state=state,
                       on_checkpoint=on_checkpoint, progress=progress)
@@ -92,7 +110,8 @@ def design(
         "initial": initial_design(scene, targets, shown, settings, bounds),
         "optimized": (result.open_fraction, result.displays),
     })
-    return DesignResult(config, result, names, targets, views, metrics)
+    part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
+    return DesignResult(config, result, names, targets, views, metrics, part)
 
 
 def evaluate(
@@ -153,7 +172,9 @@ def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
 def write_atomic(path: Path, data: bytes | str) -> None:
     """Write via a temporary file in the same folder and rename: never a truncated file."""
     payload = data.encode() if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    # os.open with 0o666 honours the umask, unlike mkstemp's private 0o600.
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(payload)
@@ -206,7 +227,8 @@ def _save_checkpoint(folder: Path, state: dict[str, Any], fingerprint: str) -> N
     write_atomic(folder / CHECKPOINT_NAME, buffer.getvalue())
 
 
-def run_design(paths: Sequence[Path], out: Path, config: Config, *, resume: bool = False,
+def run_design(paths: Sequence[Path], out: Path, config: Config, *,
+               fabrication: FabricationSettings | None = None, resume: bool = False,
                progress: bool = True) -> DesignResult:
     """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint."""
     folder = output_folder(out)
@@ -224,14 +246,37 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *, resume: bool
                              "targets; run without --resume to start again.")
         state = saved["state"]
     try:
-        result = design(images, config, names=names, state=state, progress=progress,
+        result = design(images, config, names=names, fabrication=fabrication, state=state,
+                        progress=progress,
                         on_checkpoint=lambda s: _save_checkpoint(folder, s, fingerprint))
     except Interrupted as stop:
         _save_checkpoint(folder, stop.state, fingerprint)
         raise
     write_outputs(folder, result)
+    if result.part is not None and fabrication is not None:
+        write_part(folder, result.part, fabrication, _formats(out, fabrication), progress)
     checkpoint.unlink(missing_ok=True)
     return result
+
+
+def _formats(out: Path, fabrication: FabricationSettings) -> tuple[PartFormat, ...]:
+    formats: list[PartFormat] = ["stl", "3mf", "csv", "dxf", "svg"]
+    if fabrication.step or out.suffix.lower() in (".step", ".stp"):
+        formats.append("step")
+    return tuple(formats)
+
+
+def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
+               formats: Sequence[PartFormat] = PART_FORMATS, progress: bool = True) -> list[Path]:
+    """Write the part's files atomically; a format that fails leaves no file behind."""
+    from tqdm import tqdm
+
+    written = []
+    for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
+        for name, data in part_files(part, (fmt,), fabrication).items():
+            write_atomic(folder / name, data)
+            written.append(folder / name)
+    return written
 
 
 def write_outputs(folder: Path, result: DesignResult) -> None:
@@ -260,9 +305,27 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
         "stopped": d.stopped,
         "bounds": list(d.bounds),
         "metrics": result.metrics,
+        "fabrication": None if result.part is None else _part_summary(result.part),
         "config": to_dict(result.config),
     }
     write_atomic(folder / "design.json", json.dumps(summary, indent=2))
+
+
+def _part_summary(part: Part) -> dict[str, Any]:
+    from aperture_fab.quantize import layout_stats
+
+    stats = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+             for k, v in layout_stats(part.layout).items()}
+    return {
+        "layout": stats,
+        "violations": [
+            {"rule": v.rule, "cell": v.cell, "value_mm": v.value_mm, "limit_mm": v.limit_mm,
+             "resolution": v.resolution}
+            for v in part.layout.violations
+        ],
+        "mesh": {"watertight": part.report.watertight, "genus": part.report.genus,
+                 "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count},
+    }
 
 
 def _gain(view: np.ndarray, target: np.ndarray) -> float:

@@ -53,7 +53,7 @@ OCP_MISSING = (
 
 @dataclass(frozen=True)
 class StepSummary:
-    """What a STEP file holds, as OCCT reads it back.
+    """What an OCCT shape holds: a STEP file as read back, or build_solid's solid.
 
     solids: number of solids.
     valid: BRepCheck_Analyzer finds the shape valid.

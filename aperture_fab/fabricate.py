@@ -1,0 +1,153 @@
+"""From an optimized plate to a part: makeable holes (quantize), the solid (build), its files.
+
+Values in, values out; the pipeline writes the files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from aperture_fab.exporters import dxf_bytes, holes_csv, stl_bytes, svg_text, threemf_bytes
+from aperture_fab.layout import HoleLayout
+from aperture_fab.mesh import MeshReport, PlateMesh, build_mesh, check_mesh
+from aperture_fab.process import Process, open_fraction_bounds, resolve_process
+from aperture_fab.quantize import quantize
+from aperture_fab.scene import Scene
+
+__all__ = [
+    "PART_FORMATS",
+    "PartFormat",
+    "Part",
+    "FabricationSettings",
+    "fabrication_settings",
+    "design_bounds",
+    "make_part",
+    "part_files",
+]
+
+PartFormat = Literal["stl", "3mf", "csv", "dxf", "svg", "step"]
+PART_FORMATS: tuple[PartFormat, ...] = ("stl", "3mf", "csv", "dxf", "svg", "step")
+FILE_NAMES: dict[PartFormat, str] = {
+    "stl": "plate.stl", "3mf": "plate.3mf", "csv": "holes.csv", "dxf": "plate.dxf",
+    "svg": "plate.svg", "step": "plate.step",
+}
+#: Chord error of hole polygons as a share of the process's radius sigma: well inside tolerance.
+CHORD_SHARE_OF_SIGMA = 0.25
+MIN_CHORD_MM = 2e-4
+MAX_CHORD_MM = 5e-3
+#: Legs of the alignment chamfer on the outline's top-left corner, as a share of the margin.
+CORNER_CUT_SHARE = 0.6
+
+
+@dataclass(frozen=True)
+class FabricationSettings:
+    """How the part is made.
+
+    process: the fabrication process (rules and tolerances).
+    force: write parts the process cannot make, with the violations recorded.
+    step: also write a STEP B-rep.
+    alignment_cut: chamfer the outline's top-left corner so the plate goes one way round.
+    svg_polarity: "holes_black" (holes drawn black on white) or "holes_white".
+    """
+
+    process: Process
+    force: bool = False
+    step: bool = False
+    alignment_cut: bool = True
+    svg_polarity: Literal["holes_black", "holes_white"] = "holes_black"
+
+
+def fabrication_settings(extra: Mapping[str, Any], overrides: Mapping[str, Any] | None = None
+                         ) -> FabricationSettings:
+    """Settings from a config's [process] and [fabrication] tables plus flag overrides
+    (keys "process", "force", "step")."""
+    section = dict(extra.get("process", {}))
+    fab = dict(extra.get("fabrication", {}))
+    fab.update({k: v for k, v in (overrides or {}).items() if k != "process" and v is not None})
+    name = (overrides or {}).get("process") or section.pop("name", "resin")
+    section.pop("name", None)
+    process = resolve_process(str(name), section)
+    allowed = {"force", "step", "alignment_cut", "svg_polarity"}
+    unknown = set(fab) - allowed
+    if unknown:
+        raise ValueError(f"[fabrication] has unknown keys {sorted(unknown)}; allowed: "
+                         f"{sorted(allowed)}.")
+    polarity = fab.get("svg_polarity", "holes_black")
+    if polarity not in ("holes_black", "holes_white"):
+        raise ValueError(f"fabrication.svg_polarity = {polarity!r}; use holes_black or "
+                         "holes_white.")
+    return FabricationSettings(process, bool(fab.get("force", False)), bool(fab.get("step", False)),
+                               bool(fab.get("alignment_cut", True)), polarity)
+
+
+def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:
+    """Open-area fractions the optimizer may use: up to the largest hole the process makes in a
+    cell; below the smallest makeable hole quantization diffuses the area, so the low end is 0."""
+    _, a_max = open_fraction_bounds(process, scene.plate)
+    if a_max <= 0:
+        return (0.0, scene.plate.max_open_fraction)  # unmakeable: make_part says why
+    return (0.0, min(a_max, scene.plate.max_open_fraction))
+
+
+@dataclass(frozen=True)
+class Part:
+    """A part ready to write.
+
+    layout: the holes as made.
+    mesh: the plate solid (mm, watertight), in part coordinates (bottom face at z = 0).
+    report: the mesh's own checks.
+    corner_cut_mm: the alignment chamfer's legs (0 for none).
+    """
+
+    layout: HoleLayout
+    mesh: PlateMesh
+    report: MeshReport
+    corner_cut_mm: float
+
+
+def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSettings) -> Part:
+    """Quantize to makeable holes and build the checked solid."""
+    plate, eye = scene.plate, scene.eye
+    process = settings.process
+    layout = quantize(open_fraction, plate, process, tilt_target_mm=eye.positions_mm[0],
+                      eye_distance_mm=eye.eye_relief_mm + plate.thickness_mm / 2,
+                      force=settings.force)
+    margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
+    cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0
+    chord = min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * process.radius_sigma_mm))
+    web = 0.0 if settings.force else process.min_web_for(plate.thickness_mm)
+    mesh = build_mesh(layout, chord, min_web_mm=web, corner_cut_mm=cut)
+    report = check_mesh(mesh)
+    if not (report.watertight and report.consistently_oriented and report.bodies == 1
+            and report.genus == layout.count):
+        raise RuntimeError(f"the built plate failed its own checks ({report}); this is a bug, "
+                           "please report it with the design.")
+    return Part(layout, mesh, report, cut)
+
+
+def part_files(part: Part, formats: tuple[PartFormat, ...], settings: FabricationSettings,
+               progress: Callable[[int], None] | None = None) -> dict[str, bytes]:
+    """File name -> content for the requested formats."""
+    files: dict[str, bytes] = {}
+    for fmt in formats:
+        name = FILE_NAMES[fmt]
+        if fmt == "stl":
+            files[name] = stl_bytes(part.mesh)
+        elif fmt == "3mf":
+            files[name] = threemf_bytes(part.mesh)
+        elif fmt == "csv":
+            files[name] = holes_csv(part.layout).encode()
+        elif fmt == "dxf":
+            files[name] = dxf_bytes(part.layout, corner_cut_mm=part.corner_cut_mm)
+        elif fmt == "svg":
+            files[name] = svg_text(part.layout, settings.svg_polarity,
+                                   corner_cut_mm=part.corner_cut_mm).encode()
+        elif fmt == "step":
+            from aperture_fab.step import step_bytes
+
+            files[name] = step_bytes(part.layout, progress)
+    return files

@@ -1,0 +1,89 @@
+"""Shared fixtures: a tiny scene so design, optimize and CLI tests run in a fraction of a second.
+
+TINY is a 4 x 4 mm display of 32 x 32 pixels behind a 16 x 16 plate of 0.25 mm cells, seen on a
+16 x 16 view, on the CPU, for a handful of iterations. Its overrides use the dotted keys of
+`aperture_fab.config.resolve`; TINY_TOML is the same as a config file for the CLI.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from aperture_fab.config import Config, resolve
+from aperture_fab.images import encode_png
+from aperture_fab.targets import asymmetric_marker, pixel_art
+
+TINY_ITERATIONS = 8
+
+TINY: dict[str, Any] = {
+    "display.width_mm": 4.0,
+    "display.height_mm": 4.0,
+    "display.pixels": [32, 32],
+    "plate.cells": [16, 16],
+    "plate.pitch_mm": 0.25,
+    "eye.view_pixels": [16, 16],
+    "optimizer.iterations": TINY_ITERATIONS,
+    "optimizer.device": "cpu",
+}
+
+TINY_TOML = f"""\
+[display]
+width_mm = 4.0
+height_mm = 4.0
+pixels = [32, 32]
+
+[plate]
+cells = [16, 16]
+pitch_mm = 0.25
+
+[eye]
+view_pixels = [16, 16]
+
+[optimizer]
+iterations = {TINY_ITERATIONS}
+device = "cpu"
+"""
+
+
+def tiny_config(**overrides: Any) -> Config:
+    """The near-eye preset shrunk to TINY, with extra dotted-key overrides on top."""
+    return resolve("near-eye", overrides={**TINY, **overrides})
+
+
+@pytest.fixture
+def make_config() -> Callable[..., Config]:
+    """tiny_config as a fixture: make_config(**{"optimizer.iterations": 3})."""
+    return tiny_config
+
+
+@pytest.fixture
+def marker() -> np.ndarray:
+    """A grey target (3, 32, 32): the letter F, which no flip maps onto itself."""
+    return asymmetric_marker(32)
+
+
+@pytest.fixture
+def colour() -> np.ndarray:
+    """A colour target (3, 32, 32): pixel art."""
+    return pixel_art(32)
+
+
+@pytest.fixture
+def marker_png(tmp_path: Path) -> Path:
+    """The grey marker as an sRGB PNG file."""
+    path = tmp_path / "marker.png"
+    path.write_bytes(encode_png(asymmetric_marker(32)))
+    return path
+
+
+@pytest.fixture
+def tiny_toml(tmp_path: Path) -> Path:
+    """TINY as a TOML config file."""
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_TOML)
+    return path
