@@ -117,8 +117,10 @@ def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.T
         "history": [],
         "best": math.inf,
         "best_iteration": 0,
-        "mask_logits": _logit(share.float()).double(),
-        "display_logits": _logit(displays) if settings.display == "optimized" else None,
+        "mask_logits": _logit(share),
+        # Display content is optimized directly and projected onto [0, 1] after each step: a
+        # sigmoid would freeze the black and white pixels that elemental images are full of.
+        "display": displays.clamp(0, 1) if settings.display == "optimized" else None,
         "optimizer": None,
     }
     return state
@@ -133,8 +135,8 @@ def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarra
                            torch.as_tensor(target_displays, dtype=torch.float64), settings,
                            (lo, hi))
     a = lo + (hi - lo) * torch.sigmoid(state["mask_logits"])
-    logits = state["display_logits"]
-    displays = target_displays if logits is None else torch.sigmoid(logits).numpy()
+    shown = state["display"]
+    displays = target_displays if shown is None else shown.numpy()
     return a.numpy(), np.asarray(displays, dtype=np.float64)
 
 
@@ -175,16 +177,18 @@ def optimize(
     if target_t.ndim != 4 or tuple(target_t.shape[-2:]) != expected:
         raise ValueError(f"targets have shape {tuple(target_t.shape)}; "
                          f"expected (T, C, *{expected}).")
-    if state is None:
+    if state is not None:
+        state = copy.deepcopy(state)  # a checkpoint stays valid to resume from again
+    else:
         state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
                                (lo, hi))
     renderer = Renderer(scene, device=device, dtype=dtype)
     mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)
     params = [mask_logits]
-    display_logits = None
-    if state["display_logits"] is not None:
-        display_logits = state["display_logits"].to(device, dtype).clone().requires_grad_(True)
-        params.append(display_logits)
+    display_param = None
+    if state["display"] is not None:
+        display_param = state["display"].to(device, dtype).clone().requires_grad_(True)
+        params.append(display_param)
     if settings.method == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
     else:
@@ -194,13 +198,13 @@ def optimize(
     weights = torch.tensor(scene.eye.weights, dtype=dtype)
     weights = weights / weights.sum()
     fixed_stacks = None
-    if display_logits is None:
+    if display_param is None:
         with torch.no_grad():
             fixed_stacks = [renderer.display_stack(d) for d in shown_t]
 
     def loss_fn() -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
-        displays = shown_t if display_logits is None else torch.sigmoid(display_logits)
+        displays = shown_t if display_param is None else display_param
         total = torch.zeros((), dtype=dtype, device=device)
         for t in range(target_t.shape[0]):
             stack = fixed_stacks[t] if fixed_stacks is not None else renderer.display_stack(
@@ -227,8 +231,7 @@ def optimize(
             "best": state["best"],
             "best_iteration": state["best_iteration"],
             "mask_logits": mask_logits.detach().cpu().clone(),
-            "display_logits": None if display_logits is None
-            else display_logits.detach().cpu().clone(),
+            "display": None if display_param is None else display_param.detach().cpu().clone(),
             "optimizer": copy.deepcopy(opt.state_dict()),
         }
 
@@ -251,6 +254,9 @@ def optimize(
                 )
             (loss * scale).backward()
             opt.step()
+            if display_param is not None:
+                with torch.no_grad():
+                    display_param.clamp_(0, 1)
             state["history"].append(value)
             if value < state["best"] * (1 - settings.plateau_tolerance):
                 state["best"], state["best_iteration"] = value, iteration
@@ -270,7 +276,7 @@ def optimize(
     bar.close()
     with torch.no_grad():
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
-        displays = shown_t if display_logits is None else torch.sigmoid(display_logits)
+        displays = shown_t if display_param is None else display_param
     return MaskDesign(
         open_fraction=a.detach().cpu().double().numpy(),
         displays=displays.detach().cpu().double().numpy(),

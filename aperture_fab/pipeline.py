@@ -233,7 +233,6 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint."""
     folder = output_folder(out)
     images, names = load_targets(paths)
-    write_atomic(folder / "design.toml", to_toml(config))
     fingerprint = to_toml(config) + "\n".join(str(Path(p).resolve()) for p in paths)
     state = None
     checkpoint = folder / CHECKPOINT_NAME
@@ -245,6 +244,7 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
             raise ValueError(f"--resume: {checkpoint} was made with another config or other "
                              "targets; run without --resume to start again.")
         state = saved["state"]
+    write_atomic(folder / "design.toml", to_toml(config))
     try:
         result = design(images, config, names=names, fabrication=fabrication, state=state,
                         progress=progress,
