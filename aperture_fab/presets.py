@@ -46,7 +46,9 @@ PRESETS: dict[str, dict[str, Any]] = {
             "pitch_mm": [0.25, 0.25],
             "gap_mm": 10.0,
             "thickness_mm": 0.3,
-            "hole_axis": "chief_ray",
+            # Straight: a chief-ray hole at the plate's edge shifts by t x (about 1) between
+            # faces, more than a 0.25 mm cell, and every hole must stay inside its cell.
+            "hole_axis": "straight",
         },
         "eye": {
             "pupil_mm": 4.0,

@@ -42,6 +42,18 @@ __all__ = [
 #: Largest sensible process dimension: beyond this a value is almost surely a unit mistake.
 MAX_PROCESS_MM = 100.0
 
+#: LCD pixel of the high-resolution MSLA printers the "resin" preset assumes (Phrozen Sonic
+#: Mini 8K: 22 um; Elegoo Saturn 3/4 Ultra 12K: 19 x 24 um), mm.
+MSLA_PIXEL_MM = 0.022
+#: Smallest through-hole, in pixels: a 4-pixel hole survives light bleed in a thin plate
+#: (estimate; calibrate with a hole-ladder test print).
+MIN_HOLE_PIXELS = 4
+#: Thinnest web between holes, in pixels (estimate).
+MIN_WEB_PIXELS = 2
+#: Deepest resin hole per unit diameter (thickness / diameter): uncured resin must wash out of
+#: it (estimate).
+MAX_HOLE_ASPECT_RATIO = 4.0
+
 
 class UnmakeableError(ValueError):
     """The design cannot be made with the chosen process (the message says why and what would)."""
@@ -169,24 +181,36 @@ PROCESSES: dict[str, Process] = {
     for p in (
         Process(
             name="resin",
-            description="Resin printing (SLA / MSLA), hole axis along the build direction",
-            min_hole_mm=0.5,
-            min_web_mm=0.4,
-            thickness_range_mm=(0.4, 10.0),
-            radius_step_mm=0.025,
-            radius_bias_mm=-0.025,
-            radius_sigma_mm=0.025,
-            position_sigma_mm=0.025,
+            description="High-resolution MSLA resin printing (8K-12K LCD, ~22 um pixels) of thin "
+                        "pierced plates, hole axis along the build direction",
+            min_hole_mm=MIN_HOLE_PIXELS * MSLA_PIXEL_MM,
+            min_web_mm=MIN_WEB_PIXELS * MSLA_PIXEL_MM,
+            thickness_range_mm=(0.2, 10.0),
+            radius_step_mm=MSLA_PIXEL_MM / 2,
+            radius_bias_mm=-0.01,
+            radius_sigma_mm=0.008,
+            position_sigma_mm=MSLA_PIXEL_MM / 2,
+            min_hole_per_thickness=1 / MAX_HOLE_ASPECT_RATIO,
             sources=(
-                "Formlabs design guide (summarised at gist.github.com/unsalted/"
-                "63167e341210cd741cfaf263fb84a5ed): hole diameter >= 0.5 mm, supported wall "
-                ">= 0.4 mm",
-                "addema.se/guides-sla: holes under 0.5 mm may close off; supported walls 0.4 mm",
-                "protolab.certifitrax.com (MSLA slide): MSLA XY resolution 22-50 um -> radius "
-                "step = half a 50 um pixel (estimate)",
-                "Holes print undersize (K-Dense-AI fabrication-limits.md); bias size: estimate",
-                "SLA tolerance +-0.1 mm (fabrication-limits.md, prints.artrovogundam.com) read as "
-                "2 sigma on a diameter -> radius sigma 0.025 mm (estimate)",
+                "Pixel 0.022 mm: UVtools printer table (github.com/sn4k3/UVtools, "
+                "UVtools.Core/Printer/Machine.cs): Phrozen Sonic Mini 8K 7500 x 3240 px on "
+                "165 x 71.28 mm = 22 um; Elegoo Saturn 3 Ultra / Saturn 4 Ultra 12K "
+                "11520 x 5120 px on 218.88 x 122.88 mm = 19 x 24 um (Elegoo Saturn 8K: 28.5 um, "
+                "coarser than this preset assumes)",
+                "Min hole 4 pixels (0.088 mm) through a thin plate: estimate, calibrate with a "
+                "hole-ladder test print; consumer MSLA made ~75 um mould features and ~200 um "
+                "embedded channels (Ahmed, Sullivan & Priye, Biosensors 12(8) 652, 2022); "
+                "light bleed closes negative features first (Turek et al., Appl. Sci. 15 7412, "
+                "2025; Reid et al., 3D Print. Addit. Manuf. 11(2) 517, 2024)",
+                "Min hole also >= thickness / 4 (uncured resin must wash out of the hole): "
+                "estimate; at 2 mm it gives the generic 0.5 mm of the Formlabs SLA design guide",
+                "Min web 2 pixels (0.044 mm): estimate",
+                "Thickness 0.2 to 10 mm: estimate (0.2 mm = 4 layers of 0.05 mm)",
+                "Radius step half a pixel (0.011 mm, anti-aliased edges): estimate",
+                "Holes print undersize by light bleed (Turek et al. 2025; blog.honzamrazek.cz "
+                "2022/06 exposure bleeding): bias -0.01 mm estimate",
+                "Calibrated MSLA parts come out within about one pixel (blog.honzamrazek.cz "
+                "2022/06): radius sigma 0.008 mm, position sigma half a pixel (estimates)",
             ),
         ),
         Process(

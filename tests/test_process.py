@@ -28,6 +28,12 @@ def plate(pitch: float = 0.25, thickness: float = 0.05, cells: tuple[int, int] =
     return Plate(cells=cells, pitch_mm=(pitch, pitch), gap_mm=10.0, thickness_mm=thickness)
 
 
+def near_eye_plate() -> Plate:
+    """The default "near-eye" preset's plate: 80 x 80 cells of 0.25 mm, 0.3 mm thick."""
+    return Plate(cells=(80, 80), pitch_mm=(0.25, 0.25), gap_mm=10.0, thickness_mm=0.3,
+                 hole_axis="chief_ray")
+
+
 def test_presets_are_the_five_processes_with_sources() -> None:
     assert set(PROCESSES) == {"resin", "fdm", "laser", "etched-foil", "photomask"}
     for name, p in PROCESSES.items():
@@ -40,6 +46,32 @@ def test_fdm_cannot_make_pinholes_but_photomask_can() -> None:
     # DESIGN.md: a slicer closes holes under about 0.6 mm with a 0.4 mm nozzle.
     assert PROCESSES["fdm"].min_hole_mm >= 0.6
     assert PROCESSES["photomask"].min_hole_mm <= 0.05
+    # DESIGN.md: holes are 0.05 to 0.3 mm; the best single pinhole at h = 10 mm is about
+    # sqrt(2 lambda h) = 0.105 mm across, which the default (resin) process must reach.
+    assert PROCESSES["resin"].min_hole_for(0.3) < math.sqrt(2 * 550e-6 * 10.0)
+
+
+def test_default_near_eye_plate_is_makeable_in_resin_only() -> None:
+    resin = PROCESSES["resin"]
+    pl = near_eye_plate()
+    check_plate(resin, pl)  # does not raise
+    # Independent numbers: 4 pixels of 22 um for the hole, 2 for the web.
+    r_min, r_max = 0.088 / 2, 0.25 / 2 - 0.044 / 2
+    assert hole_radius_bounds(resin, pl) == pytest.approx((r_min, r_max))
+    a_min, a_max = open_fraction_bounds(resin, pl)
+    assert a_min == pytest.approx(math.pi * r_min**2 / 0.0625)
+    assert a_max == pytest.approx(math.pi * r_max**2 / 0.0625)
+    assert a_min < 0.1 and a_max > 0.5 and a_max > 5 * a_min  # a useful range to optimize in
+    assert makeable_processes(pl) == ["resin"]
+
+
+def test_fdm_refuses_the_near_eye_plate_and_names_resin() -> None:
+    with pytest.raises(UnmakeableError) as info:
+        check_plate(PROCESSES["fdm"], near_eye_plate())
+    message = str(info.value)
+    assert "0.4 to 10 mm" in message  # 0.3 mm is also too thin for fdm
+    assert "at least 1.8 mm" in message and "7.2x" in message
+    assert "processes that can make it at 0.3 mm: resin" in message
 
 
 @pytest.mark.parametrize(
@@ -118,8 +150,8 @@ def test_summary_names_the_numbers(name: str) -> None:
 
 @pytest.mark.parametrize(
     ("name", "pitch", "thickness"),
-    [("resin", 1.2, 1.0), ("etched-foil", 0.25, 0.05), ("etched-foil", 0.5, 0.2),
-     ("laser", 1.0, 0.3), ("photomask", 0.1, 0.18)],
+    [("resin", 1.2, 1.0), ("resin", 0.25, 0.3), ("etched-foil", 0.25, 0.05),
+     ("etched-foil", 0.5, 0.2), ("laser", 1.0, 0.3), ("photomask", 0.1, 0.18)],
 )
 def test_radius_and_fraction_bounds(name: str, pitch: float, thickness: float) -> None:
     p = PROCESSES[name]
@@ -142,6 +174,13 @@ def test_thickness_scaled_rules() -> None:
     assert foil.min_hole_for(0.3) == pytest.approx(0.33)
     assert foil.min_web_for(0.3) == pytest.approx(0.3)
     assert min_pitch_mm(foil, 0.3) == pytest.approx(0.63)
+    # Resin: 4 pixels in a thin plate; in a thick one the hole must stay washable
+    # (depth <= 4 diameters), which reaches the generic 0.5 mm at 2 mm.
+    resin = PROCESSES["resin"]
+    assert resin.min_hole_for(0.3) == pytest.approx(0.088)
+    assert resin.min_hole_for(2.0) == pytest.approx(0.5)
+    assert resin.min_web_for(2.0) == pytest.approx(0.044)
+    assert min_pitch_mm(resin, 1.0) == pytest.approx(0.25 + 0.044)
 
 
 def test_no_hole_fits_gives_zero_fraction_bounds() -> None:
@@ -157,13 +196,33 @@ def test_check_plate_thickness_out_of_range() -> None:
     assert isinstance(info.value, UnmakeableError)
 
 
-def test_check_plate_pitch_too_small_names_min_pitch_and_processes() -> None:
+@pytest.mark.parametrize(
+    ("thickness", "need", "scale"),
+    [(0.3, "0.132", "1.32x"),  # 4-pixel hole + 2-pixel web
+     (0.6, "0.194", "1.94x")],  # the hole grows with thickness: 0.6 / 4 = 0.15 mm
+)
+def test_check_plate_pitch_too_small_names_min_pitch_and_processes(
+    thickness: float, need: str, scale: str
+) -> None:
     with pytest.raises(UnmakeableError) as info:
-        check_plate(PROCESSES["resin"], plate(0.25, 0.4))
+        check_plate(PROCESSES["resin"], plate(0.1, thickness))
     message = str(info.value)
-    assert "at least 0.9 mm" in message
-    assert "3.6x" in message
-    assert "etched-foil" in message or "photomask" in message
+    assert f"at least {need} mm" in message
+    assert scale in message
+    # No preset makes 0.1 mm cells at this thickness; the photomask does, thinner.
+    assert "no process makes it at" in message
+    assert "photomask (thickness 0.005 to 0.25 mm)" in message
+
+
+@pytest.mark.parametrize("thickness", [0.15, 12.0])
+def test_check_plate_resin_thickness_out_of_range(thickness: float) -> None:
+    with pytest.raises(UnmakeableError) as info:
+        check_plate(PROCESSES["resin"], plate(1.0, thickness))
+    message = str(info.value)
+    assert f"plate.thickness_mm = {thickness:g} is outside the resin range 0.2 to 10 mm" in message
+    accept = [n for n, p in PROCESSES.items()
+              if p.thickness_range_mm[0] <= thickness <= p.thickness_range_mm[1]]
+    assert f"accept {thickness:g} mm: {', '.join(accept) or 'none of the presets'}" in message
 
 
 def test_check_plate_passes_and_makeable_list() -> None:

@@ -208,10 +208,27 @@ def test_fdm_on_quarter_millimetre_cells_is_unmakeable() -> None:
         quantize(a, plate, PROCESSES["fdm"])
     message = str(info.value)
     assert "fdm" in message and "1.8 mm" in message and "7.2x" in message
-    assert "etched-foil" in message or "photomask" in message
+    assert "processes that can make it at 0.5 mm: resin" in message
     layout = quantize(a, plate, PROCESSES["fdm"], force=True)
     assert any(v.rule == "process" for v in layout.violations)
     assert pairwise_min_web(layout) >= 0  # forced holes still never overlap
+
+
+def test_resin_holes_on_the_near_eye_pitch_are_on_the_pixel_grid() -> None:
+    plate = make_plate(12, 12, (0.25, 0.25), 0.3)  # the near-eye pitch and thickness
+    a = np.random.default_rng(0).uniform(0.0, 0.5, (12, 12))
+    resin = PROCESSES["resin"]
+    layout = quantize(a, plate, resin)
+    # Independent numbers: 22 um pixels; radius in half-pixel steps, hole >= 4 pixels,
+    # web >= 2 pixels.
+    step, r_lo, web = 0.011, 0.044, 0.044
+    k = layout.radii_mm / step
+    np.testing.assert_allclose(k, np.round(k), atol=1e-6)
+    assert np.all(layout.radii_mm >= r_lo - TOL)
+    assert np.all(layout.radii_mm <= 0.125 - web / 2 + TOL)
+    assert pairwise_min_web(layout) >= web - TOL
+    assert layout.count > 0.8 * a.size  # most cells ask for more than the smallest hole
+    assert not [v for v in layout.violations if v.rule in ("process", "open_area")]
 
 
 def test_losing_most_of_the_open_area_is_unmakeable_unless_forced() -> None:
