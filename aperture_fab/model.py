@@ -386,7 +386,7 @@ def render_open(
     scene: Scene,
     display: torch.Tensor,
     position: int = 0,
-    pupil_samples: int = 256,
+    pupil_samples: int = 128,
     subpixels: int = 2,
 ) -> torch.Tensor:
     """View (C, ny, nx) of the display with no plate, by quadrature over the pupil (a sunflower
@@ -397,26 +397,24 @@ def render_open(
     cx, cy = eye.positions_mm[position]
     spread = eye.pupil_mm / 2 * abs(opt.beta_display)
     n = pupil_samples if spread > 1e-3 * min(disp.pixel_mm) else 1
-    k = np.arange(n) + 0.5
+    k = torch.arange(n, dtype=dtype, device=dev) + 0.5
     golden = math.pi * (3 - math.sqrt(5))
-    u = np.sqrt(k / n) * spread
-    pupil = np.stack([u * np.cos(golden * k), u * np.sin(golden * k)], 1)
+    radius = torch.sqrt(k / n) * spread
+    px, py = radius * torch.cos(golden * k), radius * torch.sin(golden * k)  # (n,)
+    sub = (torch.arange(subpixels, dtype=dtype, device=dev) + 0.5) / subpixels - 0.5
+    vx, vy = (torch.as_tensor(v, dtype=dtype, device=dev) for v in eye.view_directions())
     step = eye.view_step
-    sub = (np.arange(subpixels) + 0.5) / subpixels - 0.5
-    vx, vy = eye.view_directions()
-    gx = (vx[None, :, None] + sub[None, None, :] * step[0])  # (1, nx, s)
-    gy = (vy[:, None, None] - sub[None, None, :] * step[1])  # (ny, 1, s)
-    # Display points: (ny, nx, s, s, n)
-    x = cx + opt.s_display * gx[:, :, None, :, None] + pupil[:, 0]
-    y = cy + opt.s_display * gy[:, :, :, None, None] + pupil[:, 1]
-    x = np.broadcast_to(x, np.broadcast_shapes(x.shape, y.shape))
-    y = np.broadcast_to(y, x.shape)
-    col = (x + disp.width_mm / 2) / disp.pixel_mm[0] - 0.5
-    row = (disp.height_mm / 2 - y) / disp.pixel_mm[1] - 0.5
-    grid = np.stack([2 * (col + 0.5) / disp.pixels[0] - 1,
-                     2 * (row + 0.5) / disp.pixels[1] - 1], -1)
-    ny, nx = grid.shape[:2]
-    g = torch.as_tensor(grid.reshape(1, ny * nx, -1, 2), dtype=dtype, device=dev)
-    out = F.grid_sample(display.unsqueeze(0), g, mode="bilinear", padding_mode="zeros",
-                        align_corners=False)
-    return out[0].mean(-1).reshape(display.shape[0], ny, nx)
+    sx = (vx[:, None] + sub[None, :] * step[0]).reshape(-1)  # (nx * s,)
+    # Normalized display coordinates (align_corners=False: -1 and 1 are the display's edges).
+    to_gx = 2 / disp.width_mm
+    to_gy = -2 / disp.height_mm
+    gx = ((cx + opt.s_display * sx)[None, :, None] + px[None, None, :]) * to_gx  # (1, nx s, n)
+    rows = []
+    for y in vy:
+        sy = y - sub * step[1]  # (s,)
+        gy = ((cy + opt.s_display * sy)[:, None, None] + py[None, None, :]) * to_gy  # (s, 1, n)
+        grid = torch.stack(torch.broadcast_tensors(gx, gy), -1).reshape(1, 1, -1, 2)
+        out = F.grid_sample(display.unsqueeze(0), grid, mode="bilinear", padding_mode="zeros",
+                            align_corners=False)  # (1, C, 1, s * nx * s * n)
+        rows.append(out.reshape(display.shape[0], subpixels, len(vx), subpixels * n).mean((1, 3)))
+    return torch.stack(rows, 1)

@@ -228,3 +228,18 @@ def test_wrong_mask_shape_is_a_clear_error():
     scene = make_scene()
     with pytest.raises(ValueError, match="open_fraction has shape"):
         Renderer(scene).render(torch.zeros(5, 5), torch.zeros(1, 60, 60))
+
+
+@pytest.mark.parametrize("focus", [None, 300.0])
+def test_open_display_matches_the_reference(focus):
+    """No plate: the defocused display, against the Monte Carlo tracer's plate=False."""
+    rng = np.random.default_rng(5)
+    scene = make_scene(pixels=(40, 40), size=12.0, view=(12, 12), focus=focus)
+    display = np.kron(rng.random((1, 5, 5)), np.ones((8, 8)))
+    eye = scene.eye
+    ref = trace_view(display, (12.0, 12.0), np.zeros((12, 12)), scene.plate.pitch_mm,
+                     scene.plate.gap_mm, 0.0, "straight", eye.pupil_mm, eye.eye_relief_mm,
+                     eye.focus_mm, eye.fov_deg, eye.view_pixels, samples_per_pixel=4096,
+                     plate=False)
+    model = render_open(scene, torch.as_tensor(display), pupil_samples=256, subpixels=4).numpy()
+    assert psnr(model, ref) >= 30.0
