@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
@@ -118,11 +117,10 @@ def _load_config(args: argparse.Namespace) -> Any:
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from aperture_fab.presets import PRESET_DESCRIPTIONS, PRESETS, preset_summary
+    from aperture_fab.presets import PRESETS, preset_summary
 
     for name in PRESETS:
-        print(f"{name}: {PRESET_DESCRIPTIONS[name]}")
-        print(textwrap.indent(preset_summary(name), "  "))
+        print(preset_summary(name))
         print()
     return 0
 

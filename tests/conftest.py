@@ -2,17 +2,19 @@
 
 TINY is a 4 x 4 mm display of 32 x 32 pixels behind a 16 x 16 plate of 0.25 mm cells, seen on a
 16 x 16 view, on the CPU, for a handful of iterations. Its overrides use the dotted keys of
-`aperture_fab.config.resolve`; TINY_TOML is the same as a config file for the CLI.
+`aperture_fab.config.resolve`; TINY_TOML is the same as a config file for the CLI. Modules that
+run the optimizer use `pytestmark = pytest.mark.usefixtures("one_torch_thread")`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import torch
 
 from aperture_fab.config import Config, resolve
 from aperture_fab.images import encode_png
@@ -53,6 +55,16 @@ device = "cpu"
 def tiny_config(**overrides: Any) -> Config:
     """The near-eye preset shrunk to TINY, with extra dotted-key overrides on top."""
     return resolve("near-eye", overrides={**TINY, **overrides})
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """Run torch on one thread, then restore: tiny scenes gain nothing from more, and on a busy
+    machine OpenMP threads that wait for each other make them many times slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture
