@@ -5,6 +5,15 @@ display and the top face is at z = thickness. Cell (row i, col j) is centred at
 x = (j - (nx - 1) / 2) px, y = ((ny - 1) / 2 - i) py. A hole's centre at height z is
 centres_mm + (z - thickness / 2) * axes.
 
+Convergent layouts (layout.converge_mm = (ex, ey, D), chief-ray holes): each face is tiled by
+its own cell grid, the mid-plane grid scaled about E = (ex, ey) by 1 + t / 2D (bottom) and
+1 - t / 2D (top) (HoleLayout.cell_edges_mm), so every hole stays centred in its cell at both
+faces however far it is from the axis. The two faces' grids differ; they meet only through the
+hole walls and the outline's side walls, which is all watertightness needs. The walls are
+straight between the two faces' polygons, which is exact for an oblique circular cylinder: its
+polygon vertices translate along the axis, and every z-section has the polygon's area, so the
+volume stays outline area x t - sum(pi r^2 t).
+
 Each cell is a tile whose four corners are grid vertices shared with its neighbours, so the mesh
 is watertight by construction. A cell with a hole is the ring between its square and an n-gon;
 each polygon edge is joined to the square corner that lies farthest along the edge's outward
@@ -259,6 +268,12 @@ def outline_points_mm(layout: HoleLayout, corner_cut_mm: float) -> list[tuple[fl
     return points
 
 
+def _face_edges(layout: HoleLayout) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Cell edges (xs, ys) of the bottom face, then the top face (HoleLayout.cell_edges_mm)."""
+    half = layout.thickness_mm / 2
+    return [layout.cell_edges_mm(-half), layout.cell_edges_mm(half)]
+
+
 def _check_layout(layout: HoleLayout, min_web_mm: float, corner_cut_mm: float) -> bool:
     """Validate grid, cells, outline and corner cut; return whether there is a margin frame."""
     nx, ny = layout.grid
@@ -282,23 +297,37 @@ def _check_layout(layout: HoleLayout, min_web_mm: float, corner_cut_mm: float) -
             f"HoleLayout.cells lists cell {(twice // nx, twice % nx)} more than once; "
             "a cell has at most one hole."
         )
-    margin_x = (width - nx * px) / 2
-    margin_y = (height - ny * py) / 2
+    # Margins (left, right, top, bottom) between each face's cell grid and the outline.
+    margins = np.array([
+        [xs[0] + width / 2, width / 2 - xs[-1], height / 2 - ys[0], ys[-1] + height / 2]
+        for xs, ys in _face_edges(layout)
+    ])
     tol = MARGIN_RTOL * max(width, height)
-    if margin_x < -tol or margin_y < -tol:
+    if layout.converge_mm is not None and not np.all(margins > tol):
+        face = ("bottom", "top")[int(np.argmin(margins.min(axis=1)))]
+        raise ValueError(
+            f"HoleLayout.outline_mm = {layout.outline_mm} does not contain the {face} face's "
+            f"scaled cell grid with a margin (smallest margin {margins.min():.4g} mm; needed: > 0 "
+            f"on every side of both faces, for converge_mm = {layout.converge_mm}). Widen the "
+            "outline's margin."
+        )
+    if np.any(margins < -tol):
         raise ValueError(
             f"HoleLayout.outline_mm = {layout.outline_mm} is smaller than the cell grid "
             f"({nx * px:g} x {ny * py:g} mm); the outline must contain every cell."
         )
-    zero_x, zero_y = abs(margin_x) <= tol, abs(margin_y) <= tol
-    if zero_x != zero_y:
+    zero = np.abs(margins) <= tol
+    if np.any(zero) and not np.all(zero):
         raise ValueError(
             f"HoleLayout.outline_mm = {layout.outline_mm} leaves a margin on one axis only "
-            f"(margins {margin_x:g}, {margin_y:g} mm); give a margin on both axes or neither."
+            f"(margins {margins[0, 0]:g}, {margins[0, 2]:g} mm); give a margin on both axes or "
+            "neither."
         )
-    frame = not zero_x
+    frame = not np.all(zero)
     if corner_cut_mm > 0:
-        limit = min(margin_x + margin_y, width, height) if frame else 0.0
+        # The chamfer must pass outside each face's top-left grid corner.
+        top_left = float(np.min(margins[:, 0] + margins[:, 2]))
+        limit = min(top_left, width, height) if frame else 0.0
         if not corner_cut_mm < limit:
             raise ValueError(
                 f"corner_cut_mm = {corner_cut_mm:g} must be below {limit:g} mm (the margin "
@@ -315,17 +344,18 @@ def _check_web(
     or touches a side when min_web_mm is 0.
 
     polygon_xy: (K, 2, n, 2) polygon vertices (bottom, top) of the holes in `index`.
+    Each face's cells are that face's grid (scaled for convergent layouts), with sides taken
+    from the same edges build_mesh puts the grid corner vertices on.
     """
-    px, py = layout.pitch_mm
-    nx, ny = layout.grid
     rows, cols = layout.cells[index, 0], layout.cells[index, 1]
-    # Cell sides computed exactly as build_mesh computes the grid corner vertices.
-    left, right = (cols - nx / 2) * px, (cols + 1 - nx / 2) * px
-    top, bottom = (ny / 2 - rows) * py, (ny / 2 - rows - 1) * py
-    x, y = polygon_xy[..., 0].reshape(len(index), -1), polygon_xy[..., 1].reshape(len(index), -1)
-    gap = np.stack(
-        [x.min(axis=1) - left, right - x.max(axis=1), y.min(axis=1) - bottom, top - y.max(axis=1)]
-    ).min(axis=0)
+    gaps = []
+    for face, (xs, ys) in enumerate(_face_edges(layout)):
+        x, y = polygon_xy[:, face, :, 0], polygon_xy[:, face, :, 1]
+        gaps.append(np.stack([
+            x.min(axis=1) - xs[cols], xs[cols + 1] - x.max(axis=1),
+            y.min(axis=1) - ys[rows + 1], ys[rows] - y.max(axis=1),
+        ]).min(axis=0))
+    gap = np.minimum(gaps[0], gaps[1])
     bad = (gap < min_web_mm / 2) | (gap <= 0)
     if np.any(bad):
         first = int(np.argmax(bad))
@@ -351,22 +381,22 @@ def build_mesh(
     chord_tolerance_mm: largest sagitta between a hole's circle and its polygon (segment_count).
         Each polygon has the area of its circle, so volume and open area are exact.
     min_web_mm: material required between neighbouring holes; each polygon keeps half of it
-        from its cell's sides at both faces (ValueError naming the cell otherwise).
+        from its cell's sides at both faces (ValueError naming the cell otherwise). For a
+        convergent layout a face's cells are its scaled grid (HoleLayout.cell_edges_mm).
     corner_cut_mm: legs of a 45-degree chamfer cut off the outline's top-left corner (-x, +y seen
         from the eye) so the plate can only be placed one way round; 0 for none. Needs a margin.
     """
     frame = _check_layout(layout, min_web_mm, corner_cut_mm)
     nx, ny = layout.grid
-    px, py = layout.pitch_mm
     thickness = layout.thickness_mm
     n_of_hole = segment_count(layout.radii_mm, chord_tolerance_mm, segments_min, segments_max)
 
-    # Grid corner vertices: index b * (nx + 1) + a for corner column a, corner row b (top = 0).
-    corner_x = (np.arange(nx + 1) - nx / 2) * px
-    corner_y = (ny / 2 - np.arange(ny + 1)) * py
-    gx, gy = np.meshgrid(corner_x, corner_y)
+    # Grid corner vertices of each face: index b * (nx + 1) + a for corner column a, corner
+    # row b (top = 0); the two faces' grids differ for convergent layouts.
     grid_count = (nx + 1) * (ny + 1)
-    grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    bottom_xy, top_xy = (
+        np.stack([g.ravel() for g in np.meshgrid(xs, ys)], axis=1) for xs, ys in _face_edges(layout)
+    )
 
     # Outline loop, counter-clockwise from the top-right corner (the frame's outer boundary).
     if frame:
@@ -375,7 +405,7 @@ def build_mesh(
         outline_xy = np.zeros((0, 2))
 
     layer_count = grid_count + len(outline_xy)  # grid and outline vertices on one face
-    blocks_xy = [grid_xy, outline_xy, grid_xy, outline_xy]  # bottom layer, then top layer
+    blocks_xy = [bottom_xy, outline_xy, top_xy, outline_xy]  # bottom layer, then top layer
     blocks_z = [np.zeros(layer_count), np.full(layer_count, thickness)]
     offset = 2 * layer_count
     groups: list[tuple[int, np.ndarray, int]] = []  # (n, hole indices, first vertex)

@@ -17,12 +17,19 @@ where the wanted area is first clipped to the largest allowed hole in each cell 
 asked beyond that cannot be made; it is recorded as a violation, not diffused).
 
 Hole axes. "straight" holes run along z. "chief_ray" holes point from their cell centre at the
-plate's mid-thickness to the eye: axis = (E_xy - c_xy) / eye_distance_mm, where E_xy is the
-lateral eye position (tilt_target_mm) and eye_distance_mm the distance from the plate's
-mid-thickness to the pupil (eye relief + thickness / 2). A tilted hole is a circle of radius r
-swept along its axis (circular in every plane z = const); at each face it must stay inside its
-cell less half a web on every side, which keeps the web between any two holes, diagonals
-included, and to the plate's edge.
+plate's mid-thickness to the eye: axis = (E_xy - c_xy) / D, where E_xy is the lateral eye
+position (tilt_target_mm) and D = eye_distance_mm the distance from the plate's mid-thickness
+to the pupil (eye relief + thickness / 2); the layout records converge_mm = (E_xy, D). A tilted
+hole is a circle of radius r swept along its axis (circular in every plane z = const). All axes
+meet at the eye, so at height z the hole centres are the mid-plane grid scaled about E_xy by
+1 - z / D: each hole stays centred in its cell of that scaled grid (HoleLayout.cell_edges_mm).
+Every hole keeps half a web inside its cell at both faces, so
+
+    r <= min(px, py) s / 2 - web / 2,   s = 1 - t / (2 D) (the top face, the smaller grid),
+
+which keeps the web between any two holes, diagonals included. The outermost holes keep the
+web to the outline at both faces: the margin must cover how far the bottom face's grid (scaled
+by 1 + t / 2D) reaches past the mid-plane grid, plus half a web.
 """
 
 from __future__ import annotations
@@ -53,6 +60,8 @@ MAX_LOST_FRACTION = 0.5
 MAX_CELL_VIOLATIONS = 50
 #: Smallest default margin around the cell grid.
 MIN_MARGIN_MM = 1.0
+#: The eye (where chief-ray axes meet) must be this many plate thicknesses from mid-thickness.
+MIN_EYE_DISTANCE_THICKNESSES = 1.0
 #: When forced past a pitch no hole fits, holes may grow to this share of the pitch (radius).
 FORCED_MAX_RADIUS_FRACTION = 0.45
 #: Geometric slack for rounding (mm); far below any process tolerance.
@@ -81,6 +90,14 @@ def _allowed_sizes(process: Process, r_lo: float, r_hi: float) -> _Sizes:
         radii = tuple(k * step for k in range(k_lo, k_hi + 1) if k * step <= r_hi + EPS_MM)
         return _Sizes(r_lo, r_hi, radii)
     return _Sizes(r_lo, r_hi, None)
+
+
+def _largest_size(sizes: _Sizes, r_max: float, r_lo: float) -> float:
+    """The largest allowed radius <= r_max (mm), 0 when none is."""
+    if sizes.radii_mm is None:
+        return r_max if r_max >= r_lo - EPS_MM else 0.0
+    k = bisect.bisect_right(sizes.radii_mm, r_max + EPS_MM)
+    return sizes.radii_mm[k - 1] if k else 0.0
 
 
 def _check_fractions(open_fraction: np.ndarray, plate: Plate) -> np.ndarray:
@@ -171,10 +188,12 @@ def quantize(
     """Holes that `process` can make, preserving the local open area of `open_fraction`.
 
     open_fraction: (ny, nx) float, open-area fraction per cell (row 0 at +y), in [0, 1].
-    outline_margin_mm: solid margin around the cell grid on each side; default
-        max(1 mm, 2 x min web).
+    outline_margin_mm: solid margin around the (mid-plane) cell grid on each side; default
+        max(1 mm, 2 x min web + overhang), overhang being how far a face's scaled grid reaches
+        past the mid-plane grid (0 for straight holes).
     tilt_target_mm: (x, y) lateral eye position that chief-ray holes point at.
-    eye_distance_mm: plate mid-thickness to the pupil; required for hole_axis "chief_ray".
+    eye_distance_mm: plate mid-thickness to the pupil, > thickness; required for hole_axis
+        "chief_ray".
     force: return the layout even when the process cannot make the design, with violations.
 
     Raises UnmakeableError (a ValueError) when the design cannot be made at all with this
@@ -203,30 +222,46 @@ def quantize(
         min_web = min(px, py) - 2 * r_hi
     sizes = _allowed_sizes(process, r_lo, r_hi)
 
-    margin = max(MIN_MARGIN_MM, 2 * min_web) if outline_margin_mm is None else outline_margin_mm
-    if not (math.isfinite(margin) and margin >= min_web / 2):
-        raise ValueError(
-            f"outline_margin_mm = {margin!r} is too small; allowed: >= {min_web / 2:.3g} mm "
-            f"(with the half web inside the cell it keeps the {min_web:.3g} mm edge web)."
-        )
-
-    # Hole axes and the largest radius each cell allows at both faces.
+    # Hole axes, and the largest radius each cell allows at both faces.
     xs, ys = plate.cell_centres_mm()
     cx, cy = np.meshgrid(xs, ys)
+    converge: tuple[float, float, float] | None = None
+    overhang = 0.0
+    top_scale = 1.0
     if plate.hole_axis == "chief_ray":
-        if eye_distance_mm is None or not (math.isfinite(eye_distance_mm) and eye_distance_mm > 0):
+        if eye_distance_mm is None or not (
+            math.isfinite(eye_distance_mm) and eye_distance_mm > MIN_EYE_DISTANCE_THICKNESSES * t
+        ):
             raise ValueError(
                 f"eye_distance_mm = {eye_distance_mm!r}: chief_ray holes need the distance from "
-                "the plate's mid-thickness to the pupil (eye relief + thickness / 2), > 0."
+                "the plate's mid-thickness to the pupil (eye relief + thickness / 2), > the "
+                f"thickness {t:g} mm."
             )
-        ax = (tilt_target_mm[0] - cx) / eye_distance_mm
-        ay = (tilt_target_mm[1] - cy) / eye_distance_mm
+        ex, ey = float(tilt_target_mm[0]), float(tilt_target_mm[1])
+        converge = (ex, ey, float(eye_distance_mm))
+        ax = (ex - cx) / eye_distance_mm
+        ay = (ey - cy) / eye_distance_mm
+        # Each face's grid is the mid-plane grid scaled about E by 1 -+ t / 2D.
+        half_scale = t / (2 * eye_distance_mm)
+        top_scale = 1.0 - half_scale
+        half_w, half_h = nx * px / 2, ny * py / 2
+        overhang = half_scale * max(half_w + abs(ex), half_h + abs(ey))
     else:
         ax = np.zeros_like(cx)
         ay = np.zeros_like(cy)
-    r_cell = np.minimum(px / 2 - min_web / 2 - t / 2 * np.abs(ax),
-                        py / 2 - min_web / 2 - t / 2 * np.abs(ay))
-    r_cell = np.minimum(r_cell, r_hi)
+    r_cell = min(min(px, py) * top_scale / 2 - min_web / 2, r_hi)
+
+    least_margin = overhang + min_web / 2
+    if outline_margin_mm is None:
+        margin = max(MIN_MARGIN_MM, 2 * min_web + overhang)
+    else:
+        margin = outline_margin_mm
+    if not (math.isfinite(margin) and margin >= least_margin):
+        raise ValueError(
+            f"outline_margin_mm = {margin!r} is too small; allowed: >= {least_margin:.3g} mm "
+            f"(with the half web inside the cell it keeps the {min_web:.3g} mm edge web at both "
+            f"faces; chief-ray holes' scaled grid reaches {overhang:.3g} mm past the cell grid)."
+        )
 
     # Clip what the design asks to what each cell can hold; record the rule breaks.
     cell_area = px * py
@@ -235,28 +270,24 @@ def quantize(
     clipped_web: list[tuple[int, int, float, float]] = []
     clipped_tilt: list[tuple[int, int, float, float]] = []
     clipped_size: list[tuple[int, int, float, float]] = []
-    cap_area = np.zeros_like(wanted)
-    for i in range(ny):
-        for j in range(nx):
-            rc = float(r_cell[i, j])
-            if sizes.radii_mm is None:
-                top = rc if rc >= r_lo - EPS_MM else 0.0
-            else:
-                k = bisect.bisect_right(sizes.radii_mm, rc + EPS_MM)
-                top = sizes.radii_mm[k - 1] if k else 0.0
-            cap_area[i, j] = math.pi * top**2
-            wr = float(want_r[i, j])
-            if wr > r_hi + EPS_MM:
-                clipped_web.append((i, j, wr, r_hi))
-            elif wr > top + EPS_MM and rc < r_hi - EPS_MM:
-                clipped_tilt.append((i, j, wr, top))
-            elif wr > top + EPS_MM:
-                clipped_size.append((i, j, wr, top))
+    # The largest allowed hole in every cell, and what it would be without the tilt rule.
+    top = _largest_size(sizes, r_cell, r_lo)
+    top_straight = _largest_size(sizes, r_hi, r_lo)
+    cap_area = np.full_like(wanted, math.pi * top**2)
+    for i, j in zip(*np.nonzero(want_r > top + EPS_MM), strict=True):
+        wr = float(want_r[i, j])
+        if wr > r_hi + EPS_MM:
+            clipped_web.append((int(i), int(j), wr, r_hi))
+        elif top < top_straight - EPS_MM:
+            clipped_tilt.append((int(i), int(j), wr, top))
+        else:
+            clipped_size.append((int(i), int(j), wr, top))
     violations += _cell_violations(
         "min_web", clipped_web, f"wanted holes larger than r = {r_hi:.4g} mm",
         f"radius cut to {r_hi:.4g} mm to keep a {min_web:.3g} mm web")
     violations += _cell_violations(
-        "tilt", clipped_tilt, "had tilted holes that leave their cell",
+        "tilt", clipped_tilt,
+        f"had chief-ray holes larger than their cell at the top face (pitch x {top_scale:.4g})",
         f"radius cut (or the cell closed) to keep the {min_web:.3g} mm web at both faces of a "
         f"{t:g} mm plate")
     largest = sizes.radii_mm[-1] if sizes.radii_mm else 0.0
@@ -301,6 +332,7 @@ def quantize(
         outline_mm=(nx * px + 2 * margin, ny * py + 2 * margin),
         thickness_mm=t,
         violations=tuple(violations),
+        converge_mm=converge,
     )
 
 

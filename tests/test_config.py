@@ -55,7 +55,7 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert (display.width_mm, display.height_mm, display.pixels) == (20.0, 20.0, (400, 400))
     assert display.pixel_mm == pytest.approx((0.05, 0.05))
     assert (plate.cells, plate.pitch_mm, plate.gap_mm, plate.thickness_mm, plate.hole_axis) == (
-        (80, 80), (0.25, 0.25), 10.0, 0.3, "straight")
+        (80, 80), (0.25, 0.25), 10.0, 0.3, "chief_ray")
     assert (eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm) == (4.0, 10.0, None)
     assert eye.view_pixels == (128, 128)
     assert eye.positions_mm == ((0.0, 0.0),) and eye.weights == (1.0,)

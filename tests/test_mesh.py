@@ -96,6 +96,72 @@ def layouts(draw: st.DrawFn) -> tuple[HoleLayout, float, float, float]:
     return layout, web, tolerance, cut
 
 
+def convergent_layout(
+    nx: int,
+    ny: int,
+    pitch_mm: tuple[float, float],
+    thickness_mm: float,
+    margin_mm: float,
+    radii_mm: np.ndarray,
+    converge_mm: tuple[float, float, float],
+) -> HoleLayout:
+    """Chief-ray layout: holes centred in their cells at mid-thickness, axes through the eye."""
+    plain = grid_layout(nx, ny, pitch_mm, thickness_mm, margin_mm, radii_mm)
+    ex, ey, distance = converge_mm
+    axes = (np.array([ex, ey]) - plain.centres_mm) / distance
+    return _with(plain, axes=axes, converge_mm=converge_mm)
+
+
+def overhang_mm(nx: int, ny: int, pitch_mm: tuple[float, float], thickness_mm: float,
+                converge_mm: tuple[float, float, float]) -> float:
+    """How far the bottom face's grid (scaled by 1 + t / 2D about E) reaches past the
+    mid-plane grid, on its farthest side."""
+    ex, ey, distance = converge_mm
+    half_w, half_h = nx * pitch_mm[0] / 2, ny * pitch_mm[1] / 2
+    return thickness_mm / (2 * distance) * max(half_w + abs(ex), half_h + abs(ey))
+
+
+@st.composite
+def convergent_layouts(draw: st.DrawFn) -> tuple[HoleLayout, float, float, float]:
+    """(layout, min_web_mm, chord_tolerance_mm, corner_cut_mm): chief-ray holes converging on
+    an eye E within the plate's width, 2 to 50 mm from mid-thickness, near-eye-like pitches."""
+    nx, ny = draw(st.integers(1, 12)), draw(st.integers(1, 12))
+    px = draw(st.floats(0.05, 1.0))
+    py = px * draw(st.floats(1.0, 1.5))
+    pitch = min(px, py)
+    web = draw(st.sampled_from([0.0, 0.05, 0.3])) * pitch
+    thickness = draw(st.floats(0.01, 1.0))
+    distance = draw(st.floats(2.0, 50.0))
+    ex = draw(st.floats(-0.5, 0.5)) * nx * px
+    ey = draw(st.floats(-0.5, 0.5)) * ny * py
+    converge = (ex, ey, distance)
+    frame = draw(st.sampled_from([1e-3, 0.02, 1.0])) * draw(st.floats(0.5, 3.0))
+    margin = overhang_mm(nx, ny, (px, py), thickness, converge) + frame
+    occupancy = draw(st.sampled_from(["empty", "full", "one", "random"]))
+    sizes = draw(st.sampled_from(["limit", "tiny", "random"]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    # Largest circle that keeps half a web inside the top face's (smaller) cell.
+    limit = pitch * (1 - thickness / (2 * distance)) / 2 - web / 2
+    if sizes == "limit":
+        radii = np.full((ny, nx), limit)
+    elif sizes == "tiny":
+        radii = np.full((ny, nx), 1e-3 * pitch)
+    else:
+        radii = rng.uniform(0.01, 1.0, (ny, nx)) * limit
+    if occupancy == "empty":
+        radii = np.zeros((ny, nx))
+    elif occupancy == "one":
+        keep = np.zeros((ny, nx), dtype=bool)
+        keep[rng.integers(ny), rng.integers(nx)] = True
+        radii = np.where(keep, radii, 0.0)
+    elif occupancy == "random":
+        radii = np.where(rng.random((ny, nx)) < 0.5, radii, 0.0)
+    layout = convergent_layout(nx, ny, (px, py), thickness, margin, radii, converge)
+    tolerance = draw(st.floats(1e-4, 1e-1)) * pitch
+    cut = draw(st.sampled_from([0.0, 0.5])) * frame
+    return layout, web, tolerance, cut
+
+
 def expected_volume(layout: HoleLayout, corner_cut_mm: float) -> float:
     width, height = layout.outline_mm
     area = width * height - corner_cut_mm**2 / 2 - np.sum(np.pi * layout.radii_mm**2)
@@ -118,24 +184,9 @@ def test_mesh_is_a_closed_solid_with_one_tunnel_per_hole(
 ) -> None:
     layout, web, tolerance, cut = case
     mesh = build_mesh(layout, tolerance, min_web_mm=web, corner_cut_mm=cut)
-    report = check_mesh(mesh)
-    assert report.watertight and report.consistently_oriented
-    assert report.degenerate_faces == 0
-    assert report.bodies == 1
-    assert report.genus == layout.count
-    assert report.euler_characteristic == 2 - 2 * layout.count
-    want = expected_volume(layout, cut)
-    assert report.volume_mm3 == pytest.approx(want, rel=1e-6)
-    assert report.positive_volume and report.ok
-
     # Faces do not fold over: every top (bottom) triangle faces up (down), and their areas add
     # up to the face's true area, so none overlap.
-    face_area = want / layout.thickness_mm
-    top = face_signed_areas(mesh, layout.thickness_mm)
-    bottom = face_signed_areas(mesh, 0.0)
-    assert np.all(top > 0) and np.all(bottom < 0)
-    assert top.sum() == pytest.approx(face_area, rel=1e-9)
-    assert -bottom.sum() == pytest.approx(face_area, rel=1e-9)
+    assert_closed_solid(layout, mesh, cut)
 
     # Every hole vertex keeps half a web from its cell's sides.
     px, py = layout.pitch_mm
@@ -151,6 +202,140 @@ def test_mesh_is_a_closed_solid_with_one_tunnel_per_hole(
     slack = 1e-12
     assert np.all(dx[~grid_corner] <= px / 2 - web / 2 + slack)
     assert np.all(dy[~grid_corner] <= py / 2 - web / 2 + slack)
+
+
+def assert_closed_solid(layout: HoleLayout, mesh: PlateMesh, cut: float) -> None:
+    """Watertight, oriented, one body, genus = holes, exact volume, faces not folded."""
+    report = check_mesh(mesh)
+    assert report.watertight and report.consistently_oriented
+    assert report.degenerate_faces == 0
+    assert report.bodies == 1
+    assert report.genus == layout.count
+    assert report.euler_characteristic == 2 - 2 * layout.count
+    want = expected_volume(layout, cut)
+    assert report.volume_mm3 == pytest.approx(want, rel=1e-6)
+    assert report.positive_volume and report.ok
+    face_area = want / layout.thickness_mm
+    top = face_signed_areas(mesh, layout.thickness_mm)
+    bottom = face_signed_areas(mesh, 0.0)
+    assert np.all(top > 0) and np.all(bottom < 0)
+    assert top.sum() == pytest.approx(face_area, rel=1e-9)
+    assert -bottom.sum() == pytest.approx(face_area, rel=1e-9)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(convergent_layouts())
+def test_convergent_mesh_is_a_closed_solid_with_holes_in_their_scaled_cells(
+    case: tuple[HoleLayout, float, float, float],
+) -> None:
+    layout, web, tolerance, cut = case
+    mesh = build_mesh(layout, tolerance, min_web_mm=web, corner_cut_mm=cut)
+    assert_closed_solid(layout, mesh, cut)
+
+    # Each face's hole vertices keep half a web inside their cell of that face's grid: the
+    # mid-plane grid scaled about E by 1 + t / 2D (bottom, z = 0) or 1 - t / 2D (top).
+    assert layout.converge_mm is not None
+    ex, ey, distance = layout.converge_mm
+    t = layout.thickness_mm
+    px, py = layout.pitch_mm
+    nx, ny = layout.grid
+    v = mesh.vertices
+    hole_vertices = 0
+    for z, scale in ((0.0, 1 + t / (2 * distance)), (t, 1 - t / (2 * distance))):
+        on_face = v[v[:, 2] == z]
+        # Back to mid-plane grid coordinates, where cells are px x py, then distances scaled.
+        x = ex + (on_face[:, 0] - ex) / scale
+        y = ey + (on_face[:, 1] - ey) / scale
+        inside = (np.abs(x) < nx * px / 2) & (np.abs(y) < ny * py / 2)
+        dx = np.abs((x[inside] / px + nx / 2) % 1 - 0.5) * px * scale
+        dy = np.abs((y[inside] / py + ny / 2) % 1 - 0.5) * py * scale
+        grid_corner = (dx > scale * px / 2 - 1e-9) & (dy > scale * py / 2 - 1e-9)
+        hole_vertices += int(np.sum(~grid_corner))
+        slack = 1e-12
+        assert np.all(dx[~grid_corner] <= scale * px / 2 - web / 2 + slack)
+        assert np.all(dy[~grid_corner] <= scale * py / 2 - web / 2 + slack)
+        # The face's outer grid corners lie on the scaled grid.
+        for cx, cy in [(-nx * px / 2, ny * py / 2), (nx * px / 2, -ny * py / 2)]:
+            corner = (ex + (cx - ex) * scale, ey + (cy - ey) * scale)
+            assert np.any(np.all(np.isclose(on_face[:, :2], corner, rtol=0, atol=1e-12), axis=1))
+    frame_vertices = 2 * (4 + (cut > 0))
+    assert hole_vertices == len(v) - 2 * (nx + 1) * (ny + 1) - frame_vertices
+
+
+@settings(max_examples=25, deadline=None)
+@given(convergent_layouts())
+def test_manifold3d_agrees_on_convergent_layouts(
+    case: tuple[HoleLayout, float, float, float],
+) -> None:
+    layout, web, tolerance, cut = case
+    mesh = build_mesh(layout, tolerance, min_web_mm=web, corner_cut_mm=cut)
+    report = manifold_check(mesh)
+    assert report.ok, report.status
+    assert report.genus == layout.count
+    assert report.triangle_count == len(mesh.faces)
+    assert report.volume_mm3 == pytest.approx(expected_volume(layout, cut), rel=1e-4)
+
+
+def test_near_eye_convergent_plate_builds() -> None:
+    """80 x 80 cells of 0.25 mm, 0.3 mm thick, eye 10.15 mm away: corner holes move 0.3 mm
+    (more than a cell) between the faces, yet each stays in its scaled cell with the web. The
+    same holes judged against the unscaled cells are refused."""
+    n, pitch, t, distance, web = 80, 0.25, 0.3, 10.15, 0.044
+    limit = pitch * (1 - t / (2 * distance)) / 2 - web / 2
+    radii = np.random.default_rng(0).uniform(0.044, limit, (n, n))
+    layout = convergent_layout(n, n, (pitch, pitch), t, 1.0, radii, (0.0, 0.0, distance))
+    assert np.abs(layout.axes).max() * t > pitch
+    mesh = build_mesh(layout, 0.002, min_web_mm=web, corner_cut_mm=0.6)
+    assert_closed_solid(layout, mesh, 0.6)
+    # Triangles per cell as for straight holes: hole cell 4n + 8, frame, outer walls.
+    sides = segment_count(layout.radii_mm, 0.002, 8, 256)
+    assert len(mesh.faces) == int(np.sum(4 * sides + 8)) + 2 * (4 * n + 5) + 10
+    with pytest.raises(ValueError, match="of its cell's side"):
+        build_mesh(_with(layout, converge_mm=None), 0.002, min_web_mm=web)
+
+
+def test_cell_edges_are_scaled_about_the_eye() -> None:
+    """2 x 1 cells of 1 mm, E = (1, 0), D = 10: at z = +0.5 the grid is scaled by 0.95."""
+    layout = convergent_layout(2, 1, (1.0, 1.0), 1.0, 1.0, np.full((1, 2), 0.2),
+                               (1.0, 0.0, 10.0))
+    xs, ys = layout.cell_edges_mm(0.5)
+    np.testing.assert_allclose(xs, [-0.9, 0.05, 1.0], atol=1e-15)
+    np.testing.assert_allclose(ys, [0.475, -0.475], atol=1e-15)
+    xs, ys = layout.cell_edges_mm(-0.5)
+    np.testing.assert_allclose(xs, [-1.1, -0.05, 1.0], atol=1e-15)
+    np.testing.assert_allclose(ys, [0.525, -0.525], atol=1e-15)
+    straight = grid_layout(2, 1, (1.0, 1.0), 1.0, 1.0, np.full((1, 2), 0.2))
+    for z in (-0.5, 0.5):
+        xs, ys = straight.cell_edges_mm(z)
+        np.testing.assert_array_equal(xs, [-1.0, 0.0, 1.0])
+        np.testing.assert_array_equal(ys, [0.5, -0.5])
+
+
+def test_bad_convergent_layouts_are_refused() -> None:
+    n, pitch, t, distance = 4, 0.25, 0.3, 10.0
+    converge = (0.2, -0.1, distance)
+    overhang = overhang_mm(n, n, (pitch, pitch), t, converge)
+    layout = convergent_layout(n, n, (pitch, pitch), t, 1.0, np.full((n, n), 0.05), converge)
+    with pytest.raises(ValueError, match="axes differ"):
+        _with(layout, axes=layout.axes + 1e-6)
+    with pytest.raises(ValueError, match="must be > the thickness"):
+        _with(layout, axes=layout.axes * distance / t, converge_mm=(0.2, -0.1, t))
+    with pytest.raises(ValueError, match="three finite numbers"):
+        _with(layout, converge_mm=(0.2, math.nan, distance))
+    # The outline must contain the bottom face's larger grid with a margin.
+    for margin in (0.0, overhang * (1 - 1e-6)):
+        side = n * pitch + 2 * margin
+        with pytest.raises(ValueError, match="bottom face's scaled cell grid"):
+            build_mesh(_with(layout, outline_mm=(side, side)), 1e-3)
+    side = n * pitch + 2 * overhang * (1 + 1e-6)
+    assert check_mesh(build_mesh(_with(layout, outline_mm=(side, side)), 1e-3)).ok
+    # The chamfer must pass outside both faces' top-left grid corners; the bottom face's
+    # reaches farther out: left by s (half + ex), up by s (half - ey), s = t / 2D.
+    s, half = t / (2 * distance), n * pitch / 2
+    limit = (1.0 - s * (half + converge[0])) + (1.0 - s * (half - converge[1]))
+    assert check_mesh(build_mesh(layout, 1e-3, corner_cut_mm=limit - 1e-6)).ok
+    with pytest.raises(ValueError, match="corner_cut_mm"):
+        build_mesh(layout, 1e-3, corner_cut_mm=limit + 1e-6)
 
 
 @settings(max_examples=25, deadline=None)

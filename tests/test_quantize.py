@@ -27,17 +27,24 @@ def make_plate(nx: int, ny: int, pitch: tuple[float, float], thickness: float,
                  hole_axis=axis)  # type: ignore[arg-type]
 
 
+#: Holes compared at once against all others by the brute-force web check (bounds memory).
+PAIR_CHUNK = 512
+
+
 def pairwise_min_web(layout: HoleLayout) -> float:
     """Smallest distance between the walls of any two holes, at both faces (brute force)."""
     if layout.count < 2:
         return math.inf
     best = math.inf
+    r = layout.radii_mm
     for z in (-layout.thickness_mm / 2, layout.thickness_mm / 2):
         c = layout.centres_mm + z * layout.axes
-        d = np.hypot(c[:, None, 0] - c[None, :, 0], c[:, None, 1] - c[None, :, 1])
-        gap = d - layout.radii_mm[:, None] - layout.radii_mm[None, :]
-        np.fill_diagonal(gap, np.inf)
-        best = min(best, float(gap.min()))
+        for start in range(0, layout.count, PAIR_CHUNK):
+            rows = np.arange(start, min(start + PAIR_CHUNK, layout.count))
+            d = np.hypot(c[rows, None, 0] - c[None, :, 0], c[rows, None, 1] - c[None, :, 1])
+            gap = d - r[rows, None] - r[None, :]
+            gap[np.arange(len(rows)), rows] = np.inf
+            best = min(best, float(gap.min()))
     return best
 
 
@@ -139,18 +146,99 @@ def test_chief_ray_holes_point_at_the_eye_and_keep_webs(
     plate = make_plate(nx, ny, (0.2, 0.2), thickness, "chief_ray")
     a = np.full((ny, nx), fill * plate.max_open_fraction)
     layout = quantize(a, plate, foil, tilt_target_mm=target, eye_distance_mm=eye, force=True)
+    assert layout.converge_mm == (target[0], target[1], eye)
     if layout.count:
         reach = layout.centres_mm + eye * layout.axes  # the axis passes through the eye
         np.testing.assert_allclose(reach, np.broadcast_to(target, reach.shape), atol=1e-9)
-        # At both faces the hole stays in its cell less half a web.
+        # At each face the hole is centred in its cell of the grid scaled about the eye by
+        # 1 - z / D, and keeps half a web inside it.
+        xs, ys = plate.cell_centres_mm()
+        mid = np.stack([xs[layout.cells[:, 1]], ys[layout.cells[:, 0]]], axis=1)
         for z in (-thickness / 2, thickness / 2):
+            scale = 1 - z / eye
             c = layout.centres_mm + z * layout.axes
-            xs, ys = plate.cell_centres_mm()
-            cell_c = np.stack([xs[layout.cells[:, 1]], ys[layout.cells[:, 0]]], axis=1)
-            slack = 0.1 - foil.min_web_mm / 2 - np.abs(c - cell_c) - layout.radii_mm[:, None]
+            cell_c = np.asarray(target) + (mid - np.asarray(target)) * scale
+            np.testing.assert_allclose(c, cell_c, atol=1e-12)
+            slack = 0.1 * scale - foil.min_web_mm / 2 - layout.radii_mm
             assert np.all(slack >= -TOL)
     assert pairwise_min_web(layout) >= foil.min_web_mm - TOL
     assert edge_min_web(layout) >= foil.min_web_mm - TOL
+
+
+def test_near_eye_chief_ray_plate_keeps_every_hole() -> None:
+    """80 x 80 cells of 0.25 mm, 0.3 mm thick, eye 10.15 mm away: a hole 10 mm off axis moves
+    0.3 mm between the faces, more than a cell, yet every hole fits its scaled cell."""
+    n, pitch, t, eye = 80, 0.25, 0.3, 10.15
+    plate = make_plate(n, n, (pitch, pitch), t, "chief_ray")
+    resin = PROCESSES["resin"]
+    a = np.full((n, n), 0.2)
+    layout = quantize(a, plate, resin, tilt_target_mm=(0.0, 0.0), eye_distance_mm=eye)
+    assert layout.count == n * n
+    assert not layout.violations
+    corner = np.abs(layout.axes).max() * t  # shift between the faces at the plate's corner
+    assert corner > pitch
+    web = 2 * 0.022  # resin: 2 pixels of 22 um
+    assert pairwise_min_web(layout) >= web - TOL
+    assert edge_min_web(layout) >= web - TOL
+    # Largest hole the top face (pitch x (1 - t / 2D)) allows, on the half-pixel radius step.
+    r_top = pitch * (1 - t / (2 * eye)) / 2 - web / 2
+    assert np.all(layout.radii_mm <= r_top + TOL)
+    # Open area kept within half the largest gap between neighbouring allowed areas.
+    step = 0.011
+    areas = math.pi * (step * np.arange(0, int(r_top / step + 1e-9) + 1)) ** 2
+    made = float(np.sum(math.pi * layout.radii_mm**2))
+    assert abs(made - a.sum() * pitch**2) <= np.diff(areas).max() / 2
+
+
+def test_chief_ray_holes_too_big_for_the_top_face_are_cut_as_tilt() -> None:
+    """Continuous sizes: the top face's cell (pitch x (1 - t / 2D)) sets the largest hole."""
+    foil = resolve_process("photomask", {"thickness_range_mm": (0.005, 1.0)})
+    t, eye, pitch = 0.5, 2.5, 0.2
+    plate = make_plate(3, 3, (pitch, pitch), t, "chief_ray")
+    r_top = pitch * (1 - t / (2 * eye)) / 2 - foil.min_web_mm / 2
+    r_straight = pitch / 2 - foil.min_web_mm / 2
+    r_want = (r_top + r_straight) / 2
+    a = np.full((3, 3), math.pi * r_want**2 / pitch**2)
+    layout = quantize(a, plate, foil, tilt_target_mm=(0.1, 0.0), eye_distance_mm=eye)
+    np.testing.assert_allclose(layout.radii_mm, r_top)
+    assert {v.rule for v in layout.violations} == {"tilt"}
+    assert {v.cell for v in layout.violations} == {(i, j) for i in range(3) for j in range(3)}
+    assert all(v.limit_mm == pytest.approx(r_top) for v in layout.violations)
+
+
+@pytest.mark.parametrize("eye", [0.3, 0.2, -1.0, math.inf])
+def test_chief_ray_eye_must_be_beyond_the_plate(eye: float) -> None:
+    plate = make_plate(4, 4, (0.25, 0.25), 0.3, "chief_ray")
+    with pytest.raises(ValueError, match="eye_distance_mm"):
+        quantize(np.full((4, 4), 0.2), plate, PROCESSES["resin"], eye_distance_mm=eye)
+
+
+def test_chief_ray_margin_covers_the_scaled_grid() -> None:
+    """The bottom face's grid (pitch x (1 + t / 2D)) reaches past the mid-plane grid by
+    t / 2D x (half the grid + |eye offset|): the margin must cover that plus half a web."""
+    n, pitch, t, eye, ex = 40, 0.25, 0.3, 1.0, 2.0
+    plate = make_plate(n, n, (pitch, pitch), t, "chief_ray")
+    resin = PROCESSES["resin"]
+    overhang = t / (2 * eye) * (n * pitch / 2 + ex)  # 0.15 x 7 = 1.05 mm
+    a = np.full((n, n), 0.1)
+    layout = quantize(a, plate, resin, tilt_target_mm=(ex, 0.0), eye_distance_mm=eye)
+    margin = (layout.outline_mm[0] - n * pitch) / 2
+    assert margin == pytest.approx(overhang + 2 * 0.044)
+    assert edge_min_web(layout) >= 0.044 - TOL
+    assert pairwise_min_web(layout) >= 0.044 - TOL
+    least = overhang + 0.022
+    layout = quantize(a, plate, resin, outline_margin_mm=least + 1e-6,
+                      tilt_target_mm=(ex, 0.0), eye_distance_mm=eye)
+    assert edge_min_web(layout) >= 0.044 - TOL
+    with pytest.raises(ValueError, match="outline_margin_mm"):
+        quantize(a, plate, resin, outline_margin_mm=least - 1e-3, tilt_target_mm=(ex, 0.0),
+                 eye_distance_mm=eye)
+
+
+def test_straight_holes_do_not_converge() -> None:
+    layout = quantize(np.full((2, 2), 0.2), make_plate(2, 2, (0.25, 0.25), 0.05),
+                      PROCESSES["etched-foil"])
+    assert layout.converge_mm is None
 
 
 def test_straight_holes_have_zero_axes_and_cell_centres() -> None:
