@@ -149,5 +149,5 @@ def part_files(part: Part, formats: tuple[PartFormat, ...], settings: Fabricatio
         elif fmt == "step":
             from aperture_fab.step import step_bytes
 
-            files[name] = step_bytes(part.layout, progress)
+            files[name] = step_bytes(part.layout, progress, corner_cut_mm=part.corner_cut_mm)
     return files

@@ -273,9 +273,16 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
 
     written = []
     for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
-        for name, data in part_files(part, (fmt,), fabrication).items():
+        holes = tqdm(total=part.layout.count, desc=f"{fmt} holes", unit="hole", leave=False,
+                     disable=not progress or fmt != "step")
+
+        def advance(done: int, bar: Any = holes) -> None:
+            bar.update(done - bar.n)
+
+        for name, data in part_files(part, (fmt,), fabrication, advance).items():
             write_atomic(folder / name, data)
             written.append(folder / name)
+        holes.close()
     return written
 
 

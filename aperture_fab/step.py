@@ -2,7 +2,8 @@
 
 Plate coordinates: x right, y up, the part occupies z in [0, thickness] (bottom face z = 0), its
 outline centred on the axis. A hole's centre at height z is
-centres_mm + (z - thickness / 2) * axes.
+centres_mm + (z - thickness / 2) * axes. An optional alignment chamfer cuts the outline's top-left
+corner (-x, +y) at 45 degrees with legs corner_cut_mm, as the mesh, DXF and SVG outputs do.
 
 Hole walls:
 - straight holes (axes == 0): a circular cylinder (STEP cylindrical_surface);
@@ -15,7 +16,9 @@ Why the shell is built by hand: one planar face holding thousands of holes makes
 writer and every STEP reader quadratic in holes per face, and sewing is slow. So the top and
 bottom faces are each tiled into rectangles holding a few dozen holes (cut lines run in the
 webs between holes), every edge is made once and shared by its two faces, and the faces go
-straight into a shell and a solid. Time and memory are linear in the hole count.
+straight into a shell and a solid. Time and memory are linear in the hole count. The chamfer is
+one more planar side face; tile cut lines are kept off it, so it only turns each face's top-left
+tile into a pentagon.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ HOLES_PER_TILE_SIDE = 6
 STRAIGHT_AXIS_LIMIT = 1e-12
 #: Holes between progress reports.
 PROGRESS_EVERY = 1000
+#: Tile-corner index i of the chamfer's vertex on the top side (i = 0 is the left side's).
+CHAMFER_TOP = -1
 OCP_MISSING = (
     "STEP export needs OCCT's Python bindings: pip install cadquery-ocp==7.9.3.1.1 "
     "(the version cadquery 2.8 expects)."
@@ -111,11 +116,19 @@ def hole_footprints(layout: HoleLayout) -> tuple[np.ndarray, np.ndarray]:
     return centres - half * axes, centres + half * axes
 
 
-def check_layout(layout: HoleLayout) -> None:
-    """Raise ValueError unless every hole lies inside the outline and no two holes meet."""
+def check_layout(layout: HoleLayout, corner_cut_mm: float = 0.0) -> None:
+    """Raise ValueError unless every hole lies inside the (chamfered) outline and no two meet."""
     width, height = layout.outline_mm
     if not (width > 0 and height > 0):
         raise ValueError(f"HoleLayout.outline_mm = {layout.outline_mm} must be > 0 in both axes.")
+    # Shorter legs would make edges OCCT cannot tell from points.
+    longest_cut = min(width, height) - CLEARANCE_MM
+    if not (corner_cut_mm == 0 or CLEARANCE_MM <= corner_cut_mm < longest_cut):
+        raise ValueError(
+            f"corner_cut_mm = {corner_cut_mm!r} must be 0 (square corner) or from "
+            f"{CLEARANCE_MM:g} mm up to below the outline's shorter side less {CLEARANCE_MM:g} "
+            f"({longest_cut:g} mm); use the value given to build_mesh."
+        )
     radii = np.asarray(layout.radii_mm, dtype=np.float64)
     if not (np.all(np.isfinite(layout.centres_mm)) and np.all(np.isfinite(layout.axes))
             and np.all(np.isfinite(radii))):
@@ -131,7 +144,32 @@ def check_layout(layout: HoleLayout) -> None:
                 f"past the plate outline {layout.outline_mm} mm on the {name} face; allowed: "
                 f"|centre| + radius <= outline / 2 - {CLEARANCE_MM:g} mm. Widen the margin."
             )
+        if corner_cut_mm > 0:
+            check_chamfer_clear(layout, corner_cut_mm, name, centres)
     check_holes_apart(layout)
+
+
+def check_chamfer_clear(layout: HoleLayout, corner_cut_mm: float, face: str,
+                        centres: np.ndarray) -> None:
+    """Raise ValueError if the chamfer comes closer than CLEARANCE_MM to a hole on this face.
+
+    centres: (K, 2) hole centres on the face, mm, already inside the outline. The chamfer line
+    is (x + W/2) + (H/2 - y) = cut; a hole inside the outline can only meet it on the chamfer
+    itself, and the wall between the faces is straight, so both faces' checks cover the plate.
+    """
+    width, height = layout.outline_mm
+    radii = np.asarray(layout.radii_mm, dtype=np.float64)
+    # Largest cut that leaves each hole CLEARANCE_MM of material.
+    allowed = (centres[:, 0] + width / 2 + height / 2 - centres[:, 1]
+               - math.sqrt(2.0) * (radii + CLEARANCE_MM))
+    cut = np.flatnonzero(corner_cut_mm > allowed)
+    if len(cut):
+        k = int(cut[np.argmin(allowed[cut])])
+        raise ValueError(
+            f"corner_cut_mm = {corner_cut_mm:g} cuts into hole {k} (cell {tuple(layout.cells[k])},"
+            f" radius {radii[k]:g} mm) on the {face} face; allowed: <= {float(np.min(allowed)):.4g}"
+            " mm (the chamfer needs the margin clear of holes). Widen the margin or cut less."
+        )
 
 
 def check_holes_apart(layout: HoleLayout) -> None:
@@ -195,24 +233,33 @@ def tile_cuts(centres: np.ndarray, radii: np.ndarray, half_size: float) -> np.nd
     return np.asarray(cuts)
 
 
-def tile_grids(layout: HoleLayout) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Tile boundaries (xs, ys) in mm for the bottom face, then the top face."""
+def tile_grids(layout: HoleLayout, corner_cut_mm: float = 0.0
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Tile boundaries (xs, ys) in mm for the bottom face, then the top face.
+
+    Cut lines that would meet the chamfer are dropped (merging tiles), so it lies in the
+    top-left tile of each face.
+    """
     width, height = layout.outline_mm
     grids = []
     for centres in hole_footprints(layout):
         xs = tile_cuts(centres[:, 0], layout.radii_mm, width / 2)
         ys = tile_cuts(centres[:, 1], layout.radii_mm, height / 2)
+        if corner_cut_mm > 0:
+            reach = corner_cut_mm + CLEARANCE_MM
+            xs = np.concatenate([xs[:1], xs[1:-1][xs[1:-1] > xs[0] + reach], xs[-1:]])
+            ys = np.concatenate([ys[:1], ys[1:-1][ys[1:-1] < ys[-1] - reach], ys[-1:]])
         grids.append((xs, ys))
     return grids
 
 
-def tile_count(layout: HoleLayout) -> tuple[int, int]:
+def tile_count(layout: HoleLayout, corner_cut_mm: float = 0.0) -> tuple[int, int]:
     """Planar tiles on the (bottom, top) faces.
 
-    The solid has bottom + top + 4 side faces + one wall face per hole.
+    The solid has bottom + top + 4 side faces (5 with a corner cut) + one wall face per hole.
     """
-    check_layout(layout)
-    bottom, top = ((len(xs) - 1) * (len(ys) - 1) for xs, ys in tile_grids(layout))
+    check_layout(layout, corner_cut_mm)
+    bottom, top = ((len(xs) - 1) * (len(ys) - 1) for xs, ys in tile_grids(layout, corner_cut_mm))
     return bottom, top
 
 
@@ -223,6 +270,8 @@ class SharedTopology:
     """Vertices and straight edges made once and shared by both faces that meet there.
 
     A vertex key is (level, i, j): level 0 is the bottom face, 1 the top; (i, j) the tile corner.
+    With a corner cut, the top-left corner (level, 0, ny) is the chamfer's end on the left side
+    (y = H/2 - cut) and (level, CHAMFER_TOP, ny) its end on the top side (x = -W/2 + cut).
     """
 
     def __init__(self) -> None:
@@ -329,10 +378,12 @@ def planar_tiles(
     grid: tuple[np.ndarray, np.ndarray],
     centres: np.ndarray,
     circles: list[Any],
+    chamfered: bool,
 ) -> list[Any]:
     """The tiles of the bottom (level 0) or top (level 1) face, each with its holes.
 
     centres: (K, 2) hole centres on this face, mm; circles: their K circle edges.
+    chamfered: the top-left tile is a pentagon through the chamfer's two vertices.
     """
     from OCP.Geom import Geom_Plane
     from OCP.gp import gp_Ax3, gp_Dir, gp_Pnt
@@ -352,6 +403,8 @@ def planar_tiles(
     for i in range(nx):
         for j in range(ny):
             corners = [(level, i, j), (level, i + 1, j), (level, i + 1, j + 1), (level, i, j + 1)]
+            if chamfered and (i, j) == (0, ny - 1):
+                corners.insert(3, (level, CHAMFER_TOP, ny))
             if normal < 0:
                 corners.reverse()
             tile = i * ny + j
@@ -366,8 +419,9 @@ def planar_tiles(
 
 
 def side_faces(topology: SharedTopology, bottom_shape: tuple[int, int],
-               top_shape: tuple[int, int]) -> list[Any]:
-    """The four outer walls, each counter-clockwise about its outward normal.
+               top_shape: tuple[int, int], chamfered: bool) -> list[Any]:
+    """The outer walls (four, five with the chamfer), each counter-clockwise about its outward
+    normal.
 
     bottom_shape, top_shape: tile counts (nx, ny) of the bottom and top faces.
     """
@@ -375,16 +429,21 @@ def side_faces(topology: SharedTopology, bottom_shape: tuple[int, int],
     from OCP.gp import gp_Ax3, gp_Dir, gp_Pnt
 
     (bx, by), (tx, ty) = bottom_shape, top_shape
+    # The back wall ends where the top-left corner, or the chamfer, starts.
+    end = CHAMFER_TOP if chamfered else 0
     # (outward normal, bottom corners, top corners), both runs in the loop's direction along
     # the bottom, which goes counter-clockwise seen from +z: front, right, back, left.
     sides = [
         ((0.0, -1.0, 0.0), [(0, i, 0) for i in range(bx + 1)], [(1, i, 0) for i in range(tx + 1)]),
         ((1.0, 0.0, 0.0), [(0, bx, j) for j in range(by + 1)], [(1, tx, j) for j in range(ty + 1)]),
-        ((0.0, 1.0, 0.0), [(0, i, by) for i in range(bx, -1, -1)],
-         [(1, i, ty) for i in range(tx, -1, -1)]),
+        ((0.0, 1.0, 0.0), [(0, i, by) for i in range(bx, 0, -1)] + [(0, end, by)],
+         [(1, i, ty) for i in range(tx, 0, -1)] + [(1, end, ty)]),
         ((-1.0, 0.0, 0.0), [(0, 0, j) for j in range(by, -1, -1)],
          [(1, 0, j) for j in range(ty, -1, -1)]),
     ]
+    if chamfered:
+        sides.append(((-1.0, 1.0, 0.0), [(0, CHAMFER_TOP, by), (0, 0, by)],
+                      [(1, CHAMFER_TOP, ty), (1, 0, ty)]))
     faces = []
     for normal, bottom_run, top_run in sides:
         plane = Geom_Plane(gp_Ax3(gp_Pnt(*topology.points[bottom_run[0]]), gp_Dir(*normal)))
@@ -392,12 +451,18 @@ def side_faces(topology: SharedTopology, bottom_shape: tuple[int, int],
     return faces
 
 
-def build_solid(layout: HoleLayout, progress: Callable[[int], None] | None = None) -> Any:
-    """The plate as one OCCT solid (TopoDS_Solid); see the module docstring."""
+def build_solid(layout: HoleLayout, progress: Callable[[int], None] | None = None,
+                *, corner_cut_mm: float = 0.0) -> Any:
+    """The plate as one OCCT solid (TopoDS_Solid); see the module docstring.
+
+    corner_cut_mm: legs of the 45-degree chamfer on the outline's top-left corner (-x, +y); 0 for
+        none. It must stay CLEARANCE_MM clear of every hole (on the margin).
+    """
     _import_ocp()
     from OCP.TopoDS import TopoDS_Shell, TopoDS_Solid
 
-    check_layout(layout)
+    check_layout(layout, corner_cut_mm)
+    chamfered = corner_cut_mm > 0
     thickness = float(layout.thickness_mm)
     radii = np.asarray(layout.radii_mm, dtype=np.float64)
     axes = np.asarray(layout.axes, dtype=np.float64)
@@ -415,16 +480,21 @@ def build_solid(layout: HoleLayout, progress: Callable[[int], None] | None = Non
         if progress is not None and (k + 1) % PROGRESS_EVERY == 0:
             progress(k + 1)
 
-    grids = tile_grids(layout)
+    grids = tile_grids(layout, corner_cut_mm)
     for level, z_mm in ((0, 0.0), (1, thickness)):
         xs, ys = grids[level]
         for i, x in enumerate(xs):
             for j, y in enumerate(ys):
                 topology.vertex((level, i, j), (float(x), float(y), z_mm))
+        if chamfered:
+            ny = len(ys) - 1
+            topology.vertex((level, 0, ny), (float(xs[0]), float(ys[-1]) - corner_cut_mm, z_mm))
+            topology.vertex((level, CHAMFER_TOP, ny),
+                            (float(xs[0]) + corner_cut_mm, float(ys[-1]), z_mm))
         faces += planar_tiles(topology, level, z_mm, grids[level], footprints[level],
-                              circles[level])
+                              circles[level], chamfered)
     shapes = [(len(xs) - 1, len(ys) - 1) for xs, ys in grids]
-    faces += side_faces(topology, shapes[0], shapes[1])
+    faces += side_faces(topology, shapes[0], shapes[1], chamfered)
 
     shell = TopoDS_Shell()
     topology.builder.MakeShell(shell)
@@ -439,18 +509,20 @@ def build_solid(layout: HoleLayout, progress: Callable[[int], None] | None = Non
     return solid
 
 
-def step_bytes(layout: HoleLayout, progress: Callable[[int], None] | None = None) -> bytes:
+def step_bytes(layout: HoleLayout, progress: Callable[[int], None] | None = None,
+               *, corner_cut_mm: float = 0.0) -> bytes:
     """The plate as an AP214 STEP file (mm): one closed solid, exact hole surfaces.
 
     progress, if given, is called with the number of holes built so far (every 1000 holes and
-    once at the end, before the file is written).
+    once at the end, before the file is written). corner_cut_mm: the alignment chamfer's legs
+    (build_solid).
     """
     _import_ocp()
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.Interface import Interface_Static
     from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
 
-    solid = build_solid(layout, progress)
+    solid = build_solid(layout, progress, corner_cut_mm=corner_cut_mm)
     # OCCT keeps these settings in process-wide statics: set them on every call.
     Interface_Static.SetCVal_s("write.step.unit", "MM")
     Interface_Static.SetCVal_s("write.step.schema", "AP214IS")

@@ -17,6 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aperture_fab.layout import HoleLayout
+from aperture_fab.process import PROCESSES
+from aperture_fab.quantize import quantize
+from aperture_fab.scene import Plate
 from aperture_fab.step import (
     HOLES_PER_TILE_SIDE,
     STRAIGHT_AXIS_LIMIT,
@@ -84,23 +87,26 @@ def holes_layout(centres: list[tuple[float, float]], radii: list[float],
     )
 
 
-def expected_volume(layout: HoleLayout) -> float:
-    """Each z-slice of a hole is a disc of radius r, tilted or not: pi r^2 t per hole."""
+def expected_volume(layout: HoleLayout, cut: float = 0.0) -> float:
+    """Each z-slice of a hole is a disc of radius r, tilted or not: pi r^2 t per hole; the
+    chamfer removes a right triangle of legs `cut` from every slice."""
     width, height = layout.outline_mm
     t = layout.thickness_mm
-    return width * height * t - float(np.sum(math.pi * layout.radii_mm**2 * t))
+    return (width * height - cut**2 / 2) * t - float(np.sum(math.pi * layout.radii_mm**2 * t))
 
 
-def expected_area(layout: HoleLayout) -> float:
-    """Faces + sides + hole walls; an oblique wall's area is t r integral sqrt(1 + (a.n)^2) du."""
+def expected_area(layout: HoleLayout, cut: float = 0.0) -> float:
+    """Faces + sides + hole walls; an oblique wall's area is t r integral sqrt(1 + (a.n)^2) du.
+    The chamfer takes cut^2 / 2 off each face and a leg off two sides, and adds its hypotenuse."""
     width, height = layout.outline_mm
     t = layout.thickness_mm
     u = np.linspace(0.0, 2 * math.pi, 4096, endpoint=False)  # periodic: converges fast
     normals = np.stack([np.cos(u), np.sin(u)], axis=1)
     walls = [t * r * 2 * math.pi * np.mean(np.sqrt(1 + (normals @ a) ** 2))
              for r, a in zip(layout.radii_mm, layout.axes, strict=True)]
-    caps = 2 * (width * height - float(np.sum(math.pi * layout.radii_mm**2)))
-    return caps + 2 * (width + height) * t + float(np.sum(walls))
+    caps = 2 * (width * height - cut**2 / 2 - float(np.sum(math.pi * layout.radii_mm**2)))
+    sides = (2 * (width + height) - 2 * cut + math.sqrt(2) * cut) * t
+    return caps + sides + float(np.sum(walls))
 
 
 def strips(n: int) -> int:
@@ -108,28 +114,35 @@ def strips(n: int) -> int:
     return 1 + (n - 1) // HOLES_PER_TILE_SIDE if n else 1
 
 
-def check_solid(layout: HoleLayout, planar_faces: int) -> None:
+def check_solid(layout: HoleLayout, planar_faces: int, cut: float = 0.0) -> None:
     """The solid as built and as read back from STEP (readers heal some faults on the way in)."""
-    check_summary(shape_summary(build_solid(layout)), layout, planar_faces)
-    check_summary(read_step_summary(step_bytes(layout)), layout, planar_faces)
+    check_summary(shape_summary(build_solid(layout, corner_cut_mm=cut)), layout, planar_faces, cut)
+    check_summary(read_step_summary(step_bytes(layout, corner_cut_mm=cut)), layout, planar_faces,
+                  cut)
 
 
-def check_summary(summary: StepSummary, layout: HoleLayout, planar_faces: int) -> None:
+def side_count(cut: float) -> int:
+    """Four outer walls, and the chamfer's."""
+    return 4 + (cut > 0)
+
+
+def check_summary(summary: StepSummary, layout: HoleLayout, planar_faces: int,
+                  cut: float = 0.0) -> None:
     # A vanishing tilt (hypothesis finds 1e-210) is built as a true cylinder.
     straight = np.all(np.abs(layout.axes) <= STRAIGHT_AXIS_LIMIT, axis=1)
     assert summary.solids == 1
     assert summary.valid
     assert summary.closed
-    assert summary.faces == planar_faces + 4 + layout.count
+    assert summary.faces == planar_faces + side_count(cut) + layout.count
     assert summary.cylindrical_faces == int(np.sum(straight))
     assert summary.extrusion_faces == int(np.sum(~straight))
-    assert summary.volume_mm3 == pytest.approx(expected_volume(layout), rel=REL)
+    assert summary.volume_mm3 == pytest.approx(expected_volume(layout, cut), rel=REL)
     width, height = layout.outline_mm
-    removed = width * height * layout.thickness_mm - summary.volume_mm3
+    removed = (width * height - cut**2 / 2) * layout.thickness_mm - summary.volume_mm3
     assert removed == pytest.approx(
         float(np.sum(math.pi * layout.radii_mm**2 * layout.thickness_mm)), rel=REL, abs=1e-9
     )
-    assert summary.area_mm2 == pytest.approx(expected_area(layout), rel=REL)
+    assert summary.area_mm2 == pytest.approx(expected_area(layout, cut), rel=REL)
     want = np.array([[-width / 2, -height / 2, 0.0], [width / 2, height / 2, layout.thickness_mm]])
     np.testing.assert_allclose(summary.bounds_mm, want, atol=BOUNDS_SLACK_MM)
     # Straight holes are true cylinders at the right place and radius.
@@ -174,11 +187,99 @@ def test_many_tiles_share_edges() -> None:
     keep=st.lists(st.booleans(), min_size=12, max_size=12),
     tilt=st.floats(-0.1, 0.1),
     seed=st.integers(0, 1000),
+    cut=st.one_of(st.just(0.0), st.floats(1e-4, 0.9)),
 )
 @settings(max_examples=12, deadline=None)
-def test_random_small_plates(keep: list[bool], tilt: float, seed: int) -> None:
+def test_random_small_plates(keep: list[bool], tilt: float, seed: int, cut: float) -> None:
     # At most 4 columns and 3 rows: fewer than HOLES_PER_TILE_SIDE, so one tile per face.
-    check_solid(grid_layout(4, 3, tilt_per_mm=tilt, keep=np.array(keep), seed=seed), 2)
+    # A cut below 0.9 mm stays clear of the corner hole (x' + y' = 3 mm from the corner, r 0.4).
+    check_solid(grid_layout(4, 3, tilt_per_mm=tilt, keep=np.array(keep), seed=seed), 2, cut)
+
+
+@pytest.mark.parametrize("cut", [1e-4, 0.3, 0.95])
+def test_corner_cut_removes_its_triangle(cut: float) -> None:
+    layout = grid_layout(7, 5, tilt_per_mm=0.05)
+    plain = shape_summary(build_solid(layout))
+    cut_summary = shape_summary(build_solid(layout, corner_cut_mm=cut))
+    assert (cut_summary.solids, cut_summary.valid, cut_summary.closed) == (1, True, True)
+    assert cut_summary.faces == plain.faces + 1
+    assert plain.volume_mm3 - cut_summary.volume_mm3 == pytest.approx(
+        cut**2 / 2 * layout.thickness_mm, rel=REL
+    )
+    check_solid(layout, 2 * strips(7) * strips(5), cut)
+
+
+def test_corner_cut_past_a_tile_line_merges_tiles() -> None:
+    # 13 rows: a tile line between the top two rows, 2 mm below the top edge. A 2.5 mm cut
+    # (the top-left hole left out) reaches past it, so that line goes: 3 tile rows become 2.
+    keep = np.ones(7 * 13, dtype=bool)
+    keep[0] = False
+    layout = grid_layout(7, 13, keep=keep)
+    assert tile_count(layout) == (strips(7) * strips(13),) * 2 == (6, 6)
+    assert tile_count(layout, corner_cut_mm=2.5) == (4, 4)
+    check_solid(layout, 2 * 4, cut=2.5)
+
+
+@pytest.mark.parametrize(
+    ("cut", "message"),
+    [
+        (-0.1, "must be 0"),
+        (5e-5, "must be 0"),  # shorter than OCCT can tell from a point
+        (float("nan"), "must be 0"),
+        (float("inf"), "must be 0"),
+        (4.0, "must be 0"),  # the outline is 5 x 4 mm
+        (2.95, "cuts into hole 0"),  # the top-left hole is 3 mm from the corner along x + y
+    ],
+)
+def test_rejects_bad_corner_cuts(cut: float, message: str) -> None:
+    layout = grid_layout(3, 2)
+    with pytest.raises(ValueError, match=f"corner_cut_mm.*{message}"):
+        build_solid(layout, corner_cut_mm=cut)
+    with pytest.raises(ValueError, match="corner_cut_mm"):
+        step_bytes(layout, corner_cut_mm=cut)
+
+
+def test_corner_cut_checks_the_tilted_top_face() -> None:
+    # The centre is x' + y' = 3.0 mm from the corner at mid-thickness, 2.7 at the top face and
+    # 3.3 at the bottom; the hole keeps sqrt(2) r = 0.28 mm more: a 2.6 mm chamfer only meets
+    # the top face's circle, a 2.3 mm one clears both.
+    layout = holes_layout([(-1.5, 0.5)], [0.2], [(-1.0, 1.0)])
+    with pytest.raises(ValueError, match="top face"):
+        build_solid(layout, corner_cut_mm=2.6)
+    check_solid(layout, 2, cut=2.3)
+
+
+def occupied_strips(layout: HoleLayout) -> int:
+    """Tiles per face of a grid plate: each occupied column (row) of cells is its own cluster."""
+    columns = len(np.unique(layout.cells[:, 1]))
+    rows = len(np.unique(layout.cells[:, 0]))
+    return strips(columns) * strips(rows)
+
+
+@pytest.fixture(scope="module")
+def chief_ray_plate() -> HoleLayout:
+    """A quantized 20 x 20 chief-ray plate: holes converge on the eye, each face's cell grid
+    is the mid-plane grid scaled about it."""
+    plate = Plate(cells=(20, 20), pitch_mm=(0.25, 0.25), gap_mm=2.0, thickness_mm=0.3,
+                  hole_axis="chief_ray")
+    fractions = np.random.default_rng(7).uniform(0.0, 0.5, size=(20, 20))
+    return quantize(fractions, plate, PROCESSES["resin"], tilt_target_mm=(0.0, 0.0),
+                    eye_distance_mm=10.15)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.6])
+def test_quantized_chief_ray_plate(chief_ray_plate: HoleLayout, share: float) -> None:
+    layout = chief_ray_plate
+    assert layout.converge_mm is not None and layout.count > 300
+    width, height = layout.outline_mm
+    margin = (width - layout.grid[0] * layout.pitch_mm[0]) / 2
+    cut = share * margin  # as fabricate.make_part cuts it
+    summary = shape_summary(build_solid(layout, corner_cut_mm=cut))
+    assert (summary.solids, summary.valid, summary.closed) == (1, True, True)
+    assert summary.faces == 2 * occupied_strips(layout) + side_count(cut) + layout.count
+    assert summary.extrusion_faces + summary.cylindrical_faces == layout.count
+    volume = (width * height - cut**2 / 2 - float(np.sum(math.pi * layout.radii_mm**2)))
+    assert summary.volume_mm3 == pytest.approx(volume * layout.thickness_mm, rel=REL)
 
 
 def test_units_are_millimetres() -> None:
@@ -271,3 +372,27 @@ def test_cad_mount_frame_volume_and_placement(tmp_path: Path) -> None:
     stl = tmp_path / "frame.stl"
     module.main(["--out", str(stl)])
     assert stl.stat().st_size > 0
+
+
+def test_part_files_step_carries_the_parts_chamfer() -> None:
+    # The STEP part must match the mesh (and DXF/SVG) outline: the same chamfer, same volume.
+    from aperture_fab.config import resolve
+    from aperture_fab.fabricate import fabrication_settings, make_part, part_files
+    from aperture_fab.mesh import mesh_volume_mm3
+
+    config = resolve("near-eye", overrides={
+        "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
+        "plate.cells": [16, 16], "plate.pitch_mm": [0.25, 0.25], "eye.view_pixels": [12, 12],
+        "plate.thickness_mm": 0.3, "plate.hole_axis": "chief_ray",
+    })
+    settings = fabrication_settings({"process": {"name": "resin"}})
+    fractions = np.random.default_rng(3).uniform(0.0, 0.5, size=(16, 16))
+    part = make_part(fractions, config.scene, settings)
+    assert part.corner_cut_mm > 0
+    summary = read_step_summary(part_files(part, ("step",), settings)["plate.step"])
+    assert (summary.solids, summary.valid, summary.closed) == (1, True, True)
+    assert summary.faces == 2 * occupied_strips(part.layout) + 5 + part.layout.count
+    assert summary.volume_mm3 == pytest.approx(mesh_volume_mm3(part.mesh), rel=REL)
+    assert summary.volume_mm3 == pytest.approx(
+        expected_volume(part.layout, part.corner_cut_mm), rel=REL
+    )
