@@ -8,32 +8,14 @@ an interrupted run never leaves a half-written PNG.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 from aperture_fab.images import encode_png
+from aperture_fab.pipeline import write_atomic
 from aperture_fab.targets import EXAMPLES
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "targets"
-FILE_MODE = 0o644
-
-
-def write_atomically(path: Path, data: bytes) -> None:
-    """Write data to path via a temporary file in the same folder and os.replace."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-            file.flush()
-            os.fsync(file.fileno())
-        # mkstemp makes the file private (0600); an image in the repository is world-readable.
-        os.chmod(temporary, FILE_MODE)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, make in EXAMPLES.items():
         path = out / f"{name}.png"
-        write_atomically(path, encode_png(make()))
+        write_atomic(path, encode_png(make()))
         print(path)
     return 0
 
