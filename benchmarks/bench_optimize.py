@@ -6,25 +6,30 @@ Run: .venv/bin/python benchmarks/bench_optimize.py [--device auto|cpu|cuda] [--r
 Cases (each in a fresh child process, so peak memory belongs to that case alone):
 
 - seed-28: the `seed` preset (28 x 28 cells, the dissertation's scene), target digit-3,
-  300 iterations: seconds per design, median of --repeats (after one untimed 1-iteration warm-up).
+  300 iterations: seconds per design, the median of --repeats after one untimed 1-iteration
+  run (thread pools, lazy kernel loading, allocator).
 - seed-100: the seed scene with 100 x 100 cells and display pixels (view stays 28 x 28),
-  600 iterations: seconds per design.
+  600 iterations: seconds per design, likewise.
 - near-eye: the `near-eye` preset (80 x 80 cells, 128 x 128 view, display content optimized),
-  target natural: seconds per iteration, the median of 10 iterations after 2 warm-up ones, timed
-  from one optimize run with a checkpoint callback after every iteration.
+  target natural: seconds per iteration, the median over the repeats of 10 iterations each
+  after 2 warm-up ones.
 - large (--large only, meant for a GPU): 512 x 512 cells at 0.05 mm on a 25.6 mm, 1024 x 1024
-  pixel display, 512 x 512 view: seconds per iteration.
+  pixel display, 512 x 512 view: seconds per iteration (3 after 1 warm-up).
 
-Renderer setup (blur kernels and the (view pixel, hole) pair table) is timed on its own; the
-design time is the optimize call alone (which builds its own renderer). Peak memory: the increase
-of the child's peak RSS (ru_maxrss) over its value before the case, and on CUDA
-torch.cuda.max_memory_allocated. --quick runs few iterations (the smoke test); its per-design
-figures are then projected to the nominal iteration count from the per-iteration time.
+Every timed run is one `optimize` call with a checkpoint callback after every iteration that
+stamps the time; the cost of making a checkpoint (estimated by copying the last one) is taken
+out. The design time is the optimize call alone (which builds its own renderer); the renderer
+setup (blur kernels and the (view pixel, hole) pair table) is timed on its own as well,
+after each run, warm.
+Peak memory: the increase of the child's peak RSS (ru_maxrss) over its value before the case
+and, on CUDA, torch.cuda.max_memory_allocated. --quick runs a few iterations (the smoke test);
+a quick design is extended to the nominal iteration count at its per-iteration rate.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import os
@@ -68,7 +73,8 @@ class Case:
     """One benchmark scene.
 
     metric: "design" (seconds for a whole design of `iterations` iterations, median of repeats)
-        or "iteration" (median seconds of `iterations` iterations after `warmup` ones, one run).
+        or "iteration" (median seconds per iteration of `iterations` iterations after `warmup`
+        ones, over the repeats).
     quick_iterations, quick_warmup: the same under --quick.
     goal_s, reference_s: the goal and the dissertation's figure in the case's metric (None: none).
     """
@@ -111,8 +117,9 @@ CASES: dict[str, Case] = {
         Case("near-eye", "near-eye preset, 80 x 80 cells, 128 x 128 view, RGB", "near-eye",
              "natural", "iteration", iterations=10, quick_iterations=1, warmup=2, quick_warmup=1,
              goal_s=GOAL_NEAR_EYE_ITERATION_S, reference_s=None),
-        # The near-eye physics at four times the resolution: 50 um cells (a photo-etched foil,
-        # hence 0.1 mm thick) over a 25 um pixel (~1000 ppi) display of the same 25.6 mm width.
+        # The near-eye optics (gap, eye) at a finer scale: 50 um cells (holes that small need a
+        # photo-etched foil, hence 0.1 mm thick), a 25 um pixel (~1000 ppi) display as wide as
+        # the plate, and a 512 x 512 view.
         Case("large", "512 x 512 cells at 0.05 mm, 1024^2 px 25.6 mm display, 512^2 view",
              "near-eye", "natural", "iteration", iterations=3, quick_iterations=1, warmup=1,
              quick_warmup=1, goal_s=None, reference_s=None,
@@ -126,8 +133,8 @@ DEFAULT_CASES = ("seed-28", "seed-100", "near-eye")
 
 
 def case_config(case: Case, device: str, iterations: int) -> Config:
-    """The case's resolved config: every iteration runs (no plateau stop), checkpoint callback
-    after every iteration (used by the per-iteration timing only)."""
+    """The case's resolved config: every iteration runs (no plateau stop) and a checkpoint
+    follows every iteration (the timing hook)."""
     return resolve(case.preset, None, {
         **case.overrides,
         "optimizer.device": device,
@@ -164,21 +171,42 @@ def _setup_seconds(config: Config, device: torch.device, dtype: torch.dtype) -> 
     return time.perf_counter() - start, pairs
 
 
+class _Stopwatch:
+    """Checkpoint callback: stamps the time after every iteration. After the last one it also
+    times a copy of the checkpoint, an estimate of what optimize spent making each checkpoint,
+    which the figures leave out (a few ms for near-eye on a CPU, tens of us for seed)."""
+
+    def __init__(self, last_iteration: int, device: torch.device) -> None:
+        self.last_iteration = last_iteration
+        self.device = device
+        self.stamps: list[float] = []
+        self.snapshot_s = 0.0
+
+    def __call__(self, state: dict[str, Any]) -> None:
+        self.stamps.append(time.perf_counter())
+        if state["iteration"] == self.last_iteration:  # no interval left to disturb
+            start = time.perf_counter()
+            copy.deepcopy(state)
+            _sync(self.device)
+            self.snapshot_s = time.perf_counter() - start
+
+
 def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray,
-                    device: torch.device) -> tuple[float, list[float]]:
-    """Seconds of one optimize call and the seconds of its iterations 2, 3, ... (a checkpoint
-    callback after every iteration stamps the time; it costs a state copy, well under 1 %)."""
-    stamps: list[float] = []
+                    device: torch.device) -> tuple[float, list[float], float]:
+    """Seconds of one optimize call, seconds of each of its iterations 2, 3, ..., and the
+    checkpoint cost taken out of both."""
+    iterations = config.optimizer.iterations
+    watch = _Stopwatch(iterations, device)
     start = time.perf_counter()
-    optimize(config.scene, views, shown, config.optimizer, progress=False,
-             on_checkpoint=lambda _state: stamps.append(time.perf_counter()))
+    optimize(config.scene, views, shown, config.optimizer, progress=False, on_checkpoint=watch)
     _sync(device)
-    total = time.perf_counter() - start
-    return total, np.diff(stamps).tolist()
+    total = time.perf_counter() - start - iterations * watch.snapshot_s
+    intervals = (np.diff(watch.stamps) - watch.snapshot_s).tolist()
+    return total, intervals, watch.snapshot_s
 
 
 def measure(case: Case, device_name: str, repeats: int, quick: bool) -> dict[str, Any]:
-    """Run one case in this process; its figures (see the module docstring)."""
+    """Run one case `repeats` times in this process; its figures (see the module docstring)."""
     device = resolve_device(device_name)
     iterations = case.quick_iterations if quick else case.iterations
     warmup = case.quick_warmup if quick else case.warmup
@@ -189,54 +217,57 @@ def measure(case: Case, device_name: str, repeats: int, quick: bool) -> dict[str
     rss_before = _peak_rss_mib()
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    result: dict[str, Any] = {}
     if case.metric == "design":
-        # Untimed: thread pools, lazy kernel loading and allocator warm-up.
+        # Untimed: thread pools, lazy kernel loading, allocator (per-iteration cases have
+        # warm-up iterations instead).
         optimize(config.scene, views, shown, dataclasses.replace(settings, iterations=1),
                  progress=False)
-        setups, designs, steps = [], [], []
-        for _ in range(repeats):
-            seconds, pairs = _setup_seconds(config, device, dtype)
-            setups.append(seconds)
-            total, intervals = _timed_optimize(config, views, shown, device)
-            designs.append(total)
-            steps.extend(intervals)  # iterations 2.. of each repeat: steady state
-        design_s = statistics.median(designs)
-        iteration_s = statistics.median(steps)
+    setups, totals, steps, snapshots = [], [], [], []
+    for _ in range(repeats):
+        total, intervals, snapshot_s = _timed_optimize(config, views, shown, device)
+        seconds, pairs = _setup_seconds(config, device, dtype)  # warm, after a run
+        setups.append(seconds)
+        totals.append(total)
+        snapshots.append(snapshot_s)
+        # Intervals start at iteration 2 (the first builds the pair table); skip warm-up ones.
+        steps.extend(intervals[max(warmup - 1, 0):])
+    iteration_s = statistics.median(steps)
+    if case.metric == "design":
+        design_s = statistics.median(totals)
         # A short (--quick) run extended to the nominal count at the steady-state rate.
         measured_s = design_s + (case.iterations - iterations) * iteration_s
-        result.update(design_s=design_s, design_s_runs=designs, repeats=repeats)
     else:
-        setup, pairs = _setup_seconds(config, device, dtype)
-        setups = [setup]
-        _, intervals = _timed_optimize(config, views, shown, device)
-        steps = intervals[warmup - 1:]
-        iteration_s = measured_s = statistics.median(steps)
-        result.update(warmup=warmup, repeats=1)
+        design_s = None
+        measured_s = iteration_s
     cuda_peak = (torch.cuda.max_memory_allocated(device) / MIB if device.type == "cuda"
                  else None)
-    result.update(
-        case=case.name,
-        description=case.description,
-        metric=case.metric,
-        device=str(device),
-        threads=torch.get_num_threads(),
-        iteration_s_runs=steps,
-        iterations=iterations,
-        nominal_iterations=case.iterations,
-        projected=case.metric == "design" and iterations != case.iterations,
-        pairs=pairs,
-        setup_s=statistics.median(setups),
-        iteration_s=iteration_s,
-        measured_s=measured_s,
-        goal_s=case.goal_s,
-        ratio_to_goal=None if case.goal_s is None else measured_s / case.goal_s,
-        reference_s=case.reference_s,
-        speedup_vs_reference=None if case.reference_s is None else case.reference_s / measured_s,
-        peak_rss_increase_mib=_peak_rss_mib() - rss_before,
-        cuda_peak_mib=cuda_peak,
-    )
-    return result
+    return {
+        "case": case.name,
+        "description": case.description,
+        "metric": case.metric,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "repeats": repeats,
+        "iterations": iterations,
+        "warmup": warmup,
+        "nominal_iterations": case.iterations,
+        "projected": case.metric == "design" and iterations != case.iterations,
+        "pairs": pairs,
+        "setup_s": statistics.median(setups),
+        "design_s": design_s,
+        "design_s_runs": totals,
+        "iteration_s": iteration_s,
+        "iteration_s_runs": steps,
+        "snapshot_s": statistics.median(snapshots),
+        "measured_s": measured_s,
+        "goal_s": case.goal_s,
+        "ratio_to_goal": None if case.goal_s is None else measured_s / case.goal_s,
+        "reference_s": case.reference_s,
+        "speedup_vs_reference": (None if case.reference_s is None
+                                 else case.reference_s / measured_s),
+        "peak_rss_increase_mib": _peak_rss_mib() - rss_before,
+        "cuda_peak_mib": cuda_peak,
+    }
 
 
 def environment(device: torch.device) -> dict[str, Any]:
@@ -273,33 +304,39 @@ def _number(value: float | None, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-HEADER = (f"{'case':<9} {'iters':>6} {'pairs':>11} {'setup s':>8} {'measured':>10} {'unit':<6} "
-          f"{'goal':>6} {'x goal':>7} {'ref':>7} {'vs ref':>7} {'RSS MiB':>8} {'CUDA MiB':>9}")
+HEADER = (f"{'case':<9} {'iters':>6} {'pairs':>11} {'setup s':>8} {'s/iter':>8} {'s/design':>9} "
+          f"{'goal s':>6} {'x goal':>7} {'ref s':>6} {'vs ref':>7} {'RSS MiB':>8} {'CUDA MiB':>9}")
 
 
 def table_row(r: Mapping[str, Any]) -> str:
-    """One line of the results table; `*` marks per-design times projected from few iterations."""
-    unit = "s/des" if r["metric"] == "design" else "s/it"
+    """One line of the results table; `*` marks a design time extended from a --quick run."""
     iters = f"{r['iterations']}" + (f"+{r['warmup']}w" if r["metric"] == "iteration" else "")
-    measured = _number(r["measured_s"], ".3f") + ("*" if r["projected"] else "")
-    return (f"{r['case']:<9} {iters:>6} {r['pairs']:>11,} {r['setup_s']:>8.2f} {measured:>10} "
-            f"{unit:<6} {_number(r['goal_s'], '.2f'):>6} {_number(r['ratio_to_goal'], '.2f'):>7} "
-            f"{_number(r['reference_s'], '.0f'):>7} "
+    design = "-" if r["metric"] != "design" else (
+        f"{r['measured_s']:.2f}" + ("*" if r["projected"] else ""))
+    return (f"{r['case']:<9} {iters:>6} {r['pairs']:>11,} {r['setup_s']:>8.2f} "
+            f"{r['iteration_s']:>8.4f} {design:>9} {_number(r['goal_s'], '.2f'):>6} "
+            f"{_number(r['ratio_to_goal'], '.2f'):>7} {_number(r['reference_s'], '.0f'):>6} "
             f"{_number(r['speedup_vs_reference'], '.1f'):>7} "
             f"{r['peak_rss_increase_mib']:>8.0f} {_number(r['cuda_peak_mib'], '.0f'):>9}")
 
 
-NOTES = f"""\
-measured: seconds per design (median of the repeats) or per iteration (median after warm-up);
-  * = projected to the nominal iteration count from a --quick run.
-x goal: measured / goal (below 1 meets it). Goals: seed-28 300 iterations < {GOAL_SEED_28_S} s,
-  seed-100 600 iterations < {GOAL_SEED_100_S:.0f} s, near-eye < {GOAL_NEAR_EYE_ITERATION_S} s per \
-iteration.
-ref / vs ref: the dissertation's odak-based code, ~0.10 s/iteration at 28 x 28 ({REFERENCE_SEED_28_S:.0f} s \
-for 300),
-  ~3.6 s/iteration at 100 x 100 ({REFERENCE_SEED_100_S / 60:.0f} min for 600); vs ref = its time / ours.
-setup: Renderer construction plus the pair table (also inside the design time).
-RSS MiB: increase of the case's peak resident memory; CUDA MiB: torch.cuda.max_memory_allocated."""
+NOTES = "\n".join([
+    "s/iter: median seconds per iteration after the first (near-eye: after the warm-up ones);",
+    "s/design: median over the repeats of the optimize call; * = a --quick run extended to the",
+    "  nominal iteration count at its s/iter. goal s and ref s: per design for the seed cases,",
+    "  per iteration for near-eye.",
+    f"x goal: our time / goal (below 1 meets it). Goals: seed-28 300 iterations < "
+    f"{GOAL_SEED_28_S} s,",
+    f"  seed-100 600 iterations < {GOAL_SEED_100_S:.0f} s, near-eye < "
+    f"{GOAL_NEAR_EYE_ITERATION_S} s per iteration.",
+    f"ref / vs ref: the dissertation's odak-based code, ~0.10 s/iteration at 28 x 28 "
+    f"({REFERENCE_SEED_28_S:.0f} s for 300),",
+    f"  ~3.6 s/iteration at 100 x 100 ({REFERENCE_SEED_100_S / 60:.0f} min for 600); "
+    "vs ref = its time / ours.",
+    "setup: Renderer construction plus the pair table (also inside the design time).",
+    "RSS MiB: increase of the case's peak resident memory; CUDA MiB: "
+    "torch.cuda.max_memory_allocated.",
+])
 
 
 def _positive_int(text: str) -> int:

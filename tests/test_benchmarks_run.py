@@ -1,0 +1,130 @@
+"""The benchmark scripts run end to end (quickest settings) and write the figures they print.
+
+Not timing tests: the figures only have to exist, be finite and positive, and be consistent with
+each other. The case definitions are checked fast against the scenes they claim to build.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _load(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    # Registered first: dataclasses look their module up in sys.modules.
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _positive(value: object) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+@pytest.fixture(scope="module")
+def bench_optimize() -> ModuleType:
+    return _load("bench_optimize")
+
+
+@pytest.fixture(scope="module")
+def bench_quality() -> ModuleType:
+    return _load("bench_quality")
+
+
+@pytest.mark.parametrize(
+    ("name", "cells", "display_pixels", "view_pixels", "pitch_mm"),
+    [
+        ("seed-28", (28, 28), (28, 28), (28, 28), (10 / 28, 15 / 28)),
+        ("seed-100", (100, 100), (100, 100), (28, 28), (0.1, 0.15)),
+        ("near-eye", (80, 80), (400, 400), (128, 128), (0.25, 0.25)),
+        ("large", (512, 512), (1024, 1024), (512, 512), (0.05, 0.05)),
+    ],
+)
+def test_case_scenes(bench_optimize: ModuleType, name: str, cells: tuple[int, int],
+                     display_pixels: tuple[int, int], view_pixels: tuple[int, int],
+                     pitch_mm: tuple[float, float]) -> None:
+    case = bench_optimize.CASES[name]
+    config = bench_optimize.case_config(case, "cpu", 7)
+    scene = config.scene
+    assert scene.plate.cells == cells
+    assert scene.display.pixels == display_pixels
+    assert scene.eye.view_pixels == view_pixels
+    assert scene.plate.pitch_mm == pytest.approx(pitch_mm)
+    # Every scene's plate covers its display exactly.
+    assert scene.plate.size_mm == pytest.approx((scene.display.width_mm, scene.display.height_mm))
+    assert config.optimizer.iterations == 7
+    assert config.optimizer.plateau_patience == 0  # timed runs never stop early
+
+
+def test_prepare_target_matches_pipeline(bench_optimize: ModuleType) -> None:
+    """The benchmark's targets are what pipeline.design would optimize for (grey: 1 channel)."""
+    from aperture_fab.images import resample
+    from aperture_fab.targets import EXAMPLES
+
+    config = bench_optimize.case_config(bench_optimize.CASES["seed-28"], "cpu", 1)
+    image = EXAMPLES["digit-3"]()
+    views, shown = bench_optimize.prepare_target(config, image)
+    assert views.shape == (1, 1, 28, 28)
+    assert shown.shape == (1, 1, 28, 28)
+    assert views[0, 0] == pytest.approx(resample(image, (28, 28))[0])
+    colour_views, _ = bench_optimize.prepare_target(config, EXAMPLES["natural"]())
+    assert colour_views.shape == (1, 3, 28, 28)
+
+
+@pytest.mark.slow
+def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
+                              capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "optimize.json"
+    returned = bench_optimize.main(["--quick", "--repeats", "1", "--device", "cpu",
+                                    "--json", str(out)])
+    figures = json.loads(out.read_text())
+    assert figures == json.loads(json.dumps(returned))
+    assert figures["quick"] is True
+    env = figures["environment"]
+    assert env["torch"] and env["device"] == "cpu" and _positive(env["threads"])
+    assert set(figures["cases"]) == {"seed-28", "seed-100", "near-eye"}
+    for name, case in figures["cases"].items():
+        for key in ("setup_s", "iteration_s", "measured_s", "pairs", "peak_rss_increase_mib",
+                    "goal_s", "ratio_to_goal"):
+            assert _positive(case[key]), (name, key, case[key])
+        assert case["ratio_to_goal"] == pytest.approx(case["measured_s"] / case["goal_s"])
+        assert case["cuda_peak_mib"] is None
+        assert all(_positive(s) for s in case["iteration_s_runs"])
+    seed = figures["cases"]["seed-28"]
+    # A quick design is extended to 300 iterations at its steady-state rate.
+    assert seed["projected"] is True and seed["nominal_iterations"] == 300
+    assert seed["measured_s"] == pytest.approx(
+        seed["design_s"] + (300 - seed["iterations"]) * seed["iteration_s"])
+    assert seed["speedup_vs_reference"] == pytest.approx(33.0 / seed["measured_s"])
+    assert figures["cases"]["near-eye"]["metric"] == "iteration"
+    printed = capsys.readouterr().out
+    assert all(name in printed for name in figures["cases"])
+
+
+@pytest.mark.slow
+def test_bench_quality_quick(bench_quality: ModuleType, tmp_path: Path) -> None:
+    out = tmp_path / "quality.json"
+    bench_quality.main(["--iterations", "2", "--targets", "digit-3", "--device", "cpu",
+                        "--json", str(out)])
+    figures = json.loads(out.read_text())
+    assert figures["preset"] == "near-eye" and figures["iterations"] == 2
+    assert set(figures["targets"]) == {"digit-3"}
+    result = figures["targets"]["digit-3"]
+    assert set(result["psnr_db"]) == {"open", "regular_pinholes", "initial", "optimized"}
+    assert all(_positive(v) for v in result["psnr_db"].values())
+    assert result["iterations_run"] == 2 and _positive(result["seconds"])
+    psnr = result["psnr_db"]
+    assert result["beats_baselines"] == (psnr["optimized"] > max(psnr["open"],
+                                                                 psnr["regular_pinholes"]))
+    assert _positive(result["final_loss"])
