@@ -344,9 +344,28 @@ class Renderer:
         (C, H, W) in linear light, from eye position `position` of the scene's eyebox."""
         return self.render_stack(open_fraction, self.display_stack(display), position)
 
+    def fixed_samples(self, stack: torch.Tensor, position: int = 0) -> torch.Tensor:
+        """For a display that does not change (display mode "target"): its window means at every
+        stack level for every pair of `position`, (L, C, N, S). `render_stack` given these
+        instead of the stack only interpolates between levels: no resampling per iteration."""
+        pairs = self._pair_table(position)
+        levels = stack.shape[2]
+        rows_per_chunk = max(1, self.chunk_pairs // max(1, pairs.hole.shape[1]))
+        out = []
+        with torch.no_grad():
+            for start in range(0, pairs.hole.shape[0], rows_per_chunk):
+                grid = pairs.grid_xy[start : start + rows_per_chunk][None]  # (1, n, S, 2)
+                out.append(torch.stack([
+                    F.grid_sample(stack[:, :, level], grid, mode="bilinear",
+                                  padding_mode="zeros", align_corners=True)[0]
+                    for level in range(levels)
+                ]))  # (L, C, n, S)
+        return torch.cat(out, dim=2)
+
     def render_stack(self, open_fraction: torch.Tensor, stack: torch.Tensor, position: int = 0
                      ) -> torch.Tensor:
-        """As `render`, with the display already pre-filtered by `display_stack`."""
+        """As `render`, with the display already pre-filtered by `display_stack` (a 5-D stack),
+        or sampled by `fixed_samples` (4-D) for the same position."""
         scene = self.scene
         cells = (scene.plate.cells[1], scene.plate.cells[0])
         if tuple(open_fraction.shape) != cells:
@@ -376,9 +395,20 @@ class Renderer:
             abs(opt.top_to_bottom), self.pupil_bottom_mm,
             opt.window_scale**2 / math.pi / window_max2,
         )
-        grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
-        samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
-                                align_corners=True)[0, :, 0]  # (C, n, S)
+        if stack.ndim == 4:  # fixed samples (L, C, N, S): interpolate between levels
+            fixed = stack[:, :, sl]
+            top = fixed.shape[0] - 1
+            place = (level + 1) * (top / 2)
+            low = place.detach().floor().clamp(max=max(top - 1, 0))
+            share = (place - low).unsqueeze(0)
+            index = low.long().unsqueeze(0).expand(fixed.shape[1], -1, -1).unsqueeze(0)
+            below = fixed.gather(0, index)[0]
+            above = fixed.gather(0, (index + 1).clamp(max=top))[0]
+            samples = below + share * (above - below)
+        else:
+            grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
+            samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
+                                    align_corners=True)[0, :, 0]  # (C, n, S)
         return (samples * weight).sum(-1)
 
 

@@ -197,20 +197,24 @@ def optimize(
         opt.load_state_dict(state["optimizer"])
     weights = torch.tensor(scene.eye.weights, dtype=dtype)
     weights = weights / weights.sum()
-    fixed_stacks = None
-    if display_param is None:
+    fixed = None
+    if display_param is None:  # the display shows the targets: sample them once
         with torch.no_grad():
-            fixed_stacks = [renderer.display_stack(d) for d in shown_t]
+            stacks = [renderer.display_stack(d) for d in shown_t]
+            fixed = [[renderer.fixed_samples(s, p) for p in range(len(scene.eye.weights))]
+                     for s in stacks]
 
     def loss_fn() -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
         displays = shown_t if display_param is None else display_param
         total = torch.zeros((), dtype=dtype, device=device)
         for t in range(target_t.shape[0]):
-            stack = fixed_stacks[t] if fixed_stacks is not None else renderer.display_stack(
-                displays[t])
+            if fixed is not None:
+                per_position = fixed[t]
+            else:
+                per_position = [renderer.display_stack(displays[t])] * len(weights)
             for p, w in enumerate(weights.tolist()):
-                view = renderer.render_stack(a, stack, p)
+                view = renderer.render_stack(a, per_position[p], p)
                 loss = gain_mse(view, target_t[t])
                 if settings.efficiency_weight > 0:
                     open_view = render_open(scene, displays[t], p,

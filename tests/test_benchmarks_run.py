@@ -95,9 +95,10 @@ def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
     assert env["torch"] and env["device"] == "cpu" and _positive(env["threads"])
     assert set(figures["cases"]) == {"seed-28", "seed-100", "near-eye"}
     for name, case in figures["cases"].items():
-        for key in ("setup_s", "iteration_s", "measured_s", "pairs", "peak_rss_increase_mib",
-                    "goal_s", "ratio_to_goal"):
+        for key in ("setup_s", "iteration_s", "measured_s", "pairs", "goal_s", "ratio_to_goal"):
             assert _positive(case[key]), (name, key, case[key])
+        # A small case can stay within the memory the imports already took.
+        assert math.isfinite(case["peak_rss_increase_mib"]) and case["peak_rss_increase_mib"] >= 0
         assert case["ratio_to_goal"] == pytest.approx(case["measured_s"] / case["goal_s"])
         assert case["cuda_peak_mib"] is None
         assert all(_positive(s) for s in case["iteration_s_runs"])
