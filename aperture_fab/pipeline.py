@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -89,7 +89,7 @@ def design(
     names: Sequence[str] | None = None,
     fabrication: FabricationSettings | None = None,
     state: dict[str, Any] | None = None,
-    on_checkpoint: Any = None,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = False,
 ) -> DesignResult:
     """Design a plate for target images (each (3, H, W) linear RGB in [0, 1]); with
@@ -119,8 +119,9 @@ def evaluate(
     targets: np.ndarray,
     variants: dict[str, tuple[np.ndarray, np.ndarray]],
 ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, list[float]]]]:
-    """Views and gain-corrected metrics for plate variants, plus the open display (showing the
-    optimized content) and a regular pinhole array showing elemental images."""
+    """Views (T, P, C, ny, nx) and gain-corrected metrics (nominal eye position) for plate
+    variants {name: (open fractions, displays)}, plus the open display (showing the target)
+    and a regular pinhole array showing elemental images."""
     scene = config.scene
     device = resolve_device(config.optimizer.device)
     dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
