@@ -144,10 +144,11 @@ def evaluate(
             for t in _display_targets(config, target_t)
         ])
         pin_a = torch.as_tensor(array.open_fraction, dtype=dtype, device=device)
+        # One display for all eye positions (for the nominal one), like the design's.
+        pin_displays = [elemental_display(scene, array, t) for t in target_t]
         views["regular_pinholes"] = np.stack([
-            np.stack([renderer.render(pin_a, elemental_display(scene, array, t, p), p)
-                      .cpu().double().numpy() for p in positions])
-            for t in target_t
+            np.stack([renderer.render(pin_a, d, p).cpu().double().numpy() for p in positions])
+            for d in pin_displays
         ])
     metrics: dict[str, dict[str, list[float]]] = {}
     for name, v in views.items():
