@@ -1,0 +1,120 @@
+"""Image metrics for validation: how well a view matches its target, and how much light it passes.
+
+The eye cannot see more light than the holes pass, so a view is compared with its target after the
+view's least-squares gain (DESIGN.md section 3): MSE and PSNR (peak 1, linear light) on the
+gain-scaled view, SSIM on the gain-scaled view clipped to [0, 1]. Light efficiency is the view's
+mean level over the open display's, reported beside them. Images are float arrays (C, ny, nx) of
+linear light, as everywhere in the model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from aperture_fab.optimize import psnr_db
+
+__all__ = ["METRIC_KEYS", "gain", "metrics", "summarize"]
+
+#: The keys of a metrics dict, in the order reports list them.
+METRIC_KEYS: tuple[str, ...] = ("mse", "psnr_db", "ssim", "light_efficiency")
+
+#: Guards the gain's division for a black view (the same guard as optimize.gain_mse).
+GAIN_EPS = 1e-20
+#: SSIM's default Gaussian-free window is 7 x 7; smaller views use the largest odd window that
+#: fits, and views under 3 x 3 get NaN (no local statistics to compare).
+SSIM_WINDOW = 7
+SSIM_MIN_WINDOW = 3
+
+
+def _check_image(name: str, x: np.ndarray) -> np.ndarray:
+    array = np.asarray(x, dtype=np.float64)
+    if array.ndim != 3 or min(array.shape) == 0:
+        raise ValueError(
+            f"{name} has shape {array.shape}; expected (C, ny, nx) with C = 1 or 3 channels "
+            "first and no empty axis. Add a channel axis to a grey image: x[None]."
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} holds NaN or infinite values; give finite linear light.")
+    return array
+
+
+def gain(view: np.ndarray, target: np.ndarray) -> float:
+    """Least-squares gain g minimising |g view - target|^2: <view, target> / <view, view>.
+
+    A black view gets gain 0. Shapes must match.
+    """
+    v = np.asarray(view, dtype=np.float64)
+    t = np.asarray(target, dtype=np.float64)
+    if v.shape != t.shape:
+        raise ValueError(f"view has shape {v.shape} but target has {t.shape}; they must match.")
+    return float(np.sum(v * t) / (np.sum(v * v) + GAIN_EPS))
+
+
+def _ssim(scaled: np.ndarray, target: np.ndarray) -> float:
+    try:
+        from skimage.metrics import structural_similarity
+    except ImportError as err:
+        raise ImportError(
+            "SSIM needs scikit-image: pip install scikit-image"
+        ) from err
+    side = min(scaled.shape[1:])
+    if side < SSIM_MIN_WINDOW:
+        return math.nan
+    window = min(SSIM_WINDOW, side if side % 2 else side - 1)
+    if scaled.shape[0] == 1:
+        return float(structural_similarity(scaled[0], target[0], data_range=1.0,
+                                           win_size=window))
+    return float(structural_similarity(scaled, target, data_range=1.0, win_size=window,
+                                       channel_axis=0))
+
+
+def metrics(view: np.ndarray, target: np.ndarray, open_level: float) -> dict[str, float]:
+    """How well `view` matches `target`, and its light efficiency.
+
+    view, target: (C, ny, nx) linear light; the target in [0, 1].
+    open_level: the open display's mean view level (no plate) at the same eye position, > 0.
+    Returns {"mse", "psnr_db", "ssim", "light_efficiency"}: MSE and PSNR (dB, peak 1) of the
+    gain-scaled view; SSIM of the gain-scaled view clipped to [0, 1] (data range 1; NaN for
+    views under 3 x 3 pixels); light efficiency = view mean / open_level.
+    """
+    v = _check_image("view", view)
+    t = _check_image("target", target)
+    if v.shape != t.shape:
+        raise ValueError(
+            f"view has shape {v.shape} but target has {t.shape}; render the view on the "
+            "target's grid (C, ny, nx)."
+        )
+    if t.min() < 0 or t.max() > 1:
+        raise ValueError(
+            f"target holds values from {t.min():g} to {t.max():g}; allowed: 0 to 1 (linear light)."
+        )
+    if not (isinstance(open_level, (int, float, np.floating)) and math.isfinite(open_level)
+            and open_level > 0):
+        raise ValueError(
+            f"open_level = {open_level!r} is out of range; allowed: a finite number > 0, the "
+            "open display's mean view level."
+        )
+    scaled = gain(v, t) * v
+    mse = float(np.mean((scaled - t) ** 2))
+    return {
+        "mse": mse,
+        "psnr_db": psnr_db(mse),
+        "ssim": _ssim(np.clip(scaled, 0.0, 1.0), t),
+        "light_efficiency": float(v.mean() / open_level),
+    }
+
+
+def summarize(per_target: list[dict[str, float]]) -> dict[str, float]:
+    """The mean of each metric over targets (NaN stays NaN). All dicts must have the same keys."""
+    if not per_target:
+        raise ValueError("summarize got no metrics; give one metrics dict per target.")
+    keys = list(per_target[0])
+    for i, entry in enumerate(per_target):
+        if set(entry) != set(keys):
+            raise ValueError(
+                f"metrics dict {i} has keys {sorted(entry)}; expected {sorted(keys)} like the "
+                "first."
+            )
+    return {key: float(np.mean([entry[key] for entry in per_target])) for key in keys}

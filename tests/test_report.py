@@ -1,0 +1,527 @@
+"""The validation report: JSON structure, views archive, figures, HTML page and verdicts."""
+
+from __future__ import annotations
+
+import base64
+import copy
+import hashlib
+import io
+import json
+import math
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from aperture_fab.config import to_dict
+from aperture_fab.metrics import METRIC_KEYS
+from aperture_fab.report import (
+    FIGURE_KEYS,
+    REPORT_VARIANTS,
+    SCHEMA_VERSION,
+    SECTION_TITLES,
+    build_report,
+    figure_histogram,
+    figure_hole_map,
+    figure_loss,
+    figure_views,
+    report_html,
+    report_json,
+    scene_dict,
+    validate_report,
+    verdicts,
+    views_npz,
+)
+from tests.conftest import tiny_config
+
+#: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
+PSNR = {"open": 21.4, "regular_pinholes": 25.1, "random": 18.0, "optimized": 31.8,
+        "quantized": 31.5, "as_built": 31.2, "as_built_mesh": 31.1, "as_built_diffraction": 29.0}
+TARGETS = ("letter", "grid")
+EVIL = "<script>alert('x')</script>"
+
+
+def metric(psnr: float, offset: float = 0.0) -> dict[str, Any]:
+    return {"mse": 10 ** (-(psnr + offset) / 10), "psnr_db": np.float64(psnr + offset),
+            "ssim": 0.9 + offset / 100, "light_efficiency": np.float32(0.125)}
+
+
+def complete_inputs(targets: tuple[str, ...] = TARGETS) -> dict[str, Any]:
+    """Every input of build_report, as the pipeline would give them (numpy scalars included).
+    The two targets sit +-0.5 dB around PSNR, so each variant's mean PSNR is PSNR[variant]."""
+    offsets = np.linspace(-0.5, 0.5, len(targets)) if len(targets) > 1 else [0.0]
+    config = tiny_config()
+    return {
+        "metrics": {v: {t: metric(p, float(o)) for t, o in zip(targets, offsets, strict=True)}
+                    for v, p in PSNR.items()},
+        "fabrication": {"process": "resin", "holes": 240, "smallest_hole_diameter_mm": 0.08,
+                        "smallest_web_mm": 0.05, "largest_hole_diameter_mm": 0.2,
+                        "violations": [{"rule": "min_hole", "cell": (3, 4), "value_mm": 0.03,
+                                        "limit_mm": 0.05, "resolution": "closed"},
+                                       {"rule": "min_web", "cell": None, "value_mm": 0.01,
+                                        "limit_mm": 0.05, "resolution": "shrunk"}]},
+        "mesh": {"watertight": True, "genus": 240, "volume_mm3": np.float64(1.5),
+                 "triangles": 10_000},
+        "tolerance": {"samples": 64, "psnr_percentiles": {"5": 27.3, "50": 30.1, "95": 31.0},
+                      "yield": 0.92, "threshold_db": 25.0},
+        "timings_s": {"optimize": 12.5, "build": 3.25},
+        "scene": scene_dict(config.scene),
+        "config": to_dict(config),
+        "versions": {"aperture-fab": "0.1.0", "numpy": np.__version__},
+    }
+
+
+@pytest.fixture(scope="module")
+def report() -> dict[str, Any]:
+    return build_report(**complete_inputs())
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    with Image.open(io.BytesIO(data)) as image:
+        assert image.format == "PNG"
+        image.load()
+        return image.size
+
+
+# ---------------------------------------------------------------------------------------------
+# report.json
+
+
+def test_build_report_structure(report: dict[str, Any]) -> None:
+    assert report["schema_version"] == SCHEMA_VERSION == 1
+    assert list(report["metrics"]) == list(REPORT_VARIANTS)
+    for variant, block in report["metrics"].items():
+        assert set(block["per_target"]) == set(TARGETS)
+        for key in METRIC_KEYS:
+            values = [block["per_target"][t][key] for t in TARGETS]
+            assert block["mean"][key] == pytest.approx(sum(values) / len(values))
+            assert type(block["mean"][key]) is float
+        assert block["mean"]["psnr_db"] == pytest.approx(PSNR[variant])
+    assert report["fabrication"]["violations"][0]["cell"] == [3, 4]  # tuples become lists
+    assert report["fabrication"]["largest_hole_diameter_mm"] == 0.2  # extra keys are kept
+    scene = tiny_config().scene
+    assert report["scene"]["display"]["pixels"] == list(scene.display.pixels)
+    assert report["scene"]["plate"]["pitch_mm"] == list(scene.plate.pitch_mm)
+    assert report["scene"]["eye"]["focus_mm"] is None  # infinity
+    assert report["scene"]["eye"]["positions_mm"] == [list(p) for p in scene.eye.positions_mm]
+
+
+def test_nan_becomes_null_and_mean_is_null() -> None:
+    inputs = complete_inputs()
+    inputs["metrics"]["open"]["letter"]["ssim"] = math.nan
+    inputs["timings_s"]["mesh"] = math.inf
+    built = build_report(**inputs)
+    assert built["metrics"]["open"]["per_target"]["letter"]["ssim"] is None
+    assert built["metrics"]["open"]["mean"]["ssim"] is None
+    assert built["metrics"]["open"]["mean"]["psnr_db"] == pytest.approx(PSNR["open"])
+    assert built["timings_s"]["mesh"] is None
+    text = report_json(built)
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == built
+
+
+def test_json_round_trip(report: dict[str, Any]) -> None:
+    text = report_json(report)
+    assert json.loads(text) == report
+    assert text.startswith('{\n  "schema_version": 1,')
+
+
+@settings(max_examples=30, deadline=None)
+@given(values=st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=4, max_size=4))
+def test_json_round_trip_any_metric_values(values: list[float]) -> None:
+    """Any float survives as itself, or as null when JSON cannot hold it."""
+    inputs = complete_inputs()
+    inputs["metrics"] = {"as_built": {"only": dict(zip(METRIC_KEYS, values, strict=True))}}
+    built = build_report(**inputs)
+    again = json.loads(report_json(built))
+    assert again == built
+    expected = [v if math.isfinite(v) else None for v in values]
+    assert list(again["metrics"]["as_built"]["per_target"]["only"].values()) == expected
+    assert list(again["metrics"]["as_built"]["mean"].values()) == expected
+
+
+#: Every key the schema requires, as a path into the report.
+REQUIRED = [
+    ("schema_version",), ("metrics",), ("fabrication",), ("mesh",), ("tolerance",),
+    ("timings_s",), ("scene",), ("config",), ("versions",),
+    ("metrics", "as_built", "per_target"), ("metrics", "as_built", "mean"),
+    *[("metrics", "open", "per_target", "grid", k) for k in METRIC_KEYS],
+    *[("metrics", "quantized", "mean", k) for k in METRIC_KEYS],
+    *[("fabrication", k) for k in ("process", "holes", "smallest_hole_diameter_mm",
+                                   "smallest_web_mm", "violations")],
+    *[("fabrication", "violations", 1, k) for k in ("rule", "cell", "value_mm", "limit_mm",
+                                                      "resolution")],
+    *[("mesh", k) for k in ("watertight", "genus", "volume_mm3", "triangles")],
+    *[("tolerance", k) for k in ("samples", "psnr_percentiles", "yield", "threshold_db")],
+    *[("tolerance", "psnr_percentiles", k) for k in ("5", "50", "95")],
+    ("scene", "display"), ("scene", "plate"), ("scene", "eye"),
+    *[("scene", "display", k) for k in ("width_mm", "height_mm", "pixels")],
+    *[("scene", "plate", k) for k in ("gap_mm", "thickness_mm", "pitch_mm", "cells")],
+    *[("scene", "eye", k) for k in ("pupil_mm", "eye_relief_mm", "focus_mm", "fov_deg",
+                                    "view_pixels", "positions_mm")],
+]
+
+
+@pytest.mark.parametrize("path", REQUIRED, ids=lambda p: ".".join(map(str, p)))
+def test_each_missing_key_raises(report: dict[str, Any], path: tuple[Any, ...]) -> None:
+    broken = copy.deepcopy(report)
+    parent = broken
+    for key in path[:-1]:
+        parent = parent[key]
+    del parent[path[-1]]
+    with pytest.raises(ValueError, match=rf"missing \S*\b{re.escape(str(path[-1]))}\b"):
+        validate_report(broken)
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("mesh", "watertight"), "yes"),
+        (("mesh", "genus"), 2.5),
+        (("scene", "display", "pixels"), [1.5, 2]),
+        (("scene", "eye", "positions_mm"), [[0.0]]),
+        (("fabrication", "violations", 0, "cell"), [1]),
+        (("metrics", "open", "mean", "psnr_db"), "high"),
+        (("timings_s", "optimize"), "fast"),
+        (("versions", "numpy"), 2),
+        (("config",), []),
+        (("tolerance",), [1]),
+        (("metrics", "open", "per_target"), [1]),
+        (("metrics", "open", "per_target", "grid"), 0.5),
+    ],
+)
+def test_wrong_types_raise(report: dict[str, Any], path: tuple[Any, ...], value: Any) -> None:
+    broken = copy.deepcopy(report)
+    parent = broken
+    for key in path[:-1]:
+        parent = parent[key]
+    parent[path[-1]] = value
+    with pytest.raises(TypeError):
+        validate_report(broken)
+
+
+def test_other_invalid_reports(report: dict[str, Any]) -> None:
+    validate_report({**report, "tolerance": None})  # not computed is allowed
+    changes: list[tuple[dict[str, Any], str]] = [
+        ({"schema_version": 2}, "schema_version"),
+        ({"metrics": {}}, "metrics is empty"),
+        ({"metrics": {"ideal": report["metrics"]["open"]}}, "not a known variant"),
+        ({"metrics": {"open": {"per_target": {}, "mean": {}}}}, "per_target is empty"),
+        ({"tolerance": {**report["tolerance"], "yield": 92}}, "fraction"),
+    ]
+    for change, message in changes:
+        with pytest.raises(ValueError, match=message):
+            validate_report({**report, **change})
+
+
+def test_build_report_rejects_bad_metrics() -> None:
+    inputs = complete_inputs()
+    del inputs["metrics"]["as_built"]["grid"]["ssim"]
+    with pytest.raises(ValueError, match=r"metrics\.as_built\.per_target\.grid\.ssim"):
+        build_report(**inputs)
+    inputs = complete_inputs()
+    inputs["metrics"]["ideal"] = inputs["metrics"]["open"]
+    with pytest.raises(ValueError, match="ideal"):
+        build_report(**inputs)
+    inputs = complete_inputs()
+    inputs["config"] = {"when": object()}
+    with pytest.raises(TypeError, match=r"config\.when"):
+        build_report(**inputs)
+
+
+# ---------------------------------------------------------------------------------------------
+# views.npz
+
+
+def test_views_npz_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    views: dict[str, np.ndarray] = {
+        "as_built/letter": rng.uniform(0, 1, (3, 8, 8)),
+        "open/letter/pos2": rng.uniform(0, 1, (3, 8, 8)).astype(np.float32),
+        "optimized/letter <a> & b.png": rng.uniform(0, 1, (1, 4, 5)),
+    }
+    with np.load(io.BytesIO(views_npz(views))) as archive:
+        assert sorted(archive.files) == sorted(views)
+        for key, view in views.items():
+            assert archive[key].dtype == view.dtype
+            np.testing.assert_array_equal(archive[key], view)
+
+
+@pytest.mark.parametrize("key", ["as_built", "ideal/letter", "as_built/letter/3", "a/b/pos1/x",
+                                 "as_built//pos1"])
+def test_views_npz_bad_keys(key: str) -> None:
+    with pytest.raises(ValueError, match="views key"):
+        views_npz({key: np.zeros((1, 2, 2))})
+
+
+def test_views_npz_bad_values() -> None:
+    with pytest.raises(ValueError, match="float"):
+        views_npz({"open/a": np.zeros((1, 2, 2), dtype=np.uint8)})
+    with pytest.raises(ValueError, match="finite"):
+        views_npz({"open/a": np.full((1, 2, 2), np.nan)})
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures
+
+
+def test_figures_are_pngs() -> None:
+    rng = np.random.default_rng(0)
+    target = rng.uniform(0, 1, (3, 16, 16))
+    assert png_size(figure_views([("target", target), ("view", 0.3 * target),
+                                  ("grey", target[:1])], "views")) > (100, 100)
+    many = [(f"pos{k}", target) for k in range(9)]  # wraps onto two lines
+    assert png_size(figure_views(many, "eyebox"))[1] > png_size(figure_views(many[:3], "x"))[1]
+    assert png_size(figure_views([("display", target)], "display", gain_to_first=False))
+    assert png_size(figure_hole_map(rng.uniform(0, 0.1, (10, 12)), (0.25, 0.25)))
+    assert png_size(figure_loss(np.geomspace(1, 1e-3, 50)))
+    assert png_size(figure_loss(np.array([0.5, 0.0, -0.1])))  # not log-scalable: linear axis
+    assert png_size(figure_histogram(rng.normal(30, 2, 64), 25.0))
+    assert png_size(figure_histogram(np.array([30.0]), None))
+
+
+def test_figure_views_scales_by_gain() -> None:
+    """A view at half the target's level shows exactly like the target itself."""
+    target = np.random.default_rng(2).uniform(0, 1, (3, 12, 12))
+    same = figure_views([("target", target), ("view", target)], "t")
+    assert figure_views([("target", target), ("view", 0.5 * target)], "t") == same
+    assert figure_views([("target", target), ("view", 0.5 * target)], "t",
+                        gain_to_first=False) != same
+
+
+def test_hole_map_from_open_fraction_equals_from_radii() -> None:
+    pitch = (0.25, 0.2)
+    radii = np.random.default_rng(3).uniform(0, 0.09, (6, 8))
+    radii[0, 0] = 0.0  # a closed cell
+    fraction = math.pi * radii**2 / (pitch[0] * pitch[1])
+    assert (figure_hole_map(fraction, pitch, kind="open_fraction")
+            == figure_hole_map(radii, pitch))
+
+
+def test_figure_errors() -> None:
+    with pytest.raises(ValueError, match="no images"):
+        figure_views([], "t")
+    with pytest.raises(ValueError, match="gain_to_first"):
+        figure_views([("a", np.ones((3, 4, 4))), ("b", np.ones((3, 5, 4)))], "t")
+    with pytest.raises(ValueError, match="C = 1 or 3"):
+        figure_views([("a", np.ones((2, 4, 4)))], "t")
+    with pytest.raises(ValueError, match=">= 0"):
+        figure_hole_map(-np.ones((2, 2)), (0.25, 0.25))
+    with pytest.raises(ValueError, match="N >= 1"):
+        figure_loss(np.array([]))
+    with pytest.raises(ValueError, match="finite"):
+        figure_histogram(np.array([np.nan]), 25.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Verdicts
+
+
+def test_verdicts_hand_written(report: dict[str, Any]) -> None:
+    lines = verdicts(report, diffraction_blur_px=1.34)
+    assert lines[0] == ("As built, the view scores 31.2 dB PSNR (SSIM 0.90), 9.8 dB better than "
+                        "the open display and 6.1 dB better than a regular pinhole array.")
+    assert lines[1] == "Quantization and fabrication cost 0.6 dB."
+    assert "The eye sees 12 % of the light of the open display." in lines
+    assert ("Traced through the written mesh, the view scores 31.1 dB (-0.1 dB from the hole "
+            "layout's trace).") in lines
+    assert "Holes of 0.080 mm: diffraction blurs them by about 1.3 view pixels." in lines
+    assert any(line.startswith("Yield at 25 dB over 64 tolerance samples: 92 %.")
+               for line in lines)
+    assert any(line.startswith("2 fabrication rule violations of the resin process")
+               for line in lines)
+    assert "The mesh is watertight, genus 240 (one per hole), 10000 triangles." in lines
+    assert not any("diffraction blurs" in line for line in verdicts(report))
+
+
+def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]) -> None:
+    partial = copy.deepcopy(report)
+    for variant in ("as_built", "as_built_mesh", "as_built_diffraction", "regular_pinholes"):
+        del partial["metrics"][variant]
+    partial["metrics"]["open"]["mean"]["psnr_db"] = 40.0
+    partial["metrics"]["optimized"]["mean"]["psnr_db"] = 31.0
+    partial["tolerance"] = None
+    partial["fabrication"]["violations"] = []
+    partial["mesh"]["watertight"] = False
+    lines = verdicts(partial)
+    assert lines[0] == ("After quantization, the view scores 31.5 dB PSNR (SSIM 0.90), 8.5 dB "
+                        "worse than the open display.")
+    assert lines[1] == ("Quantization cost nothing: the view is 0.5 dB better than the optimized "
+                        "design's.")
+    assert "The 240 holes meet every rule of the resin process." in lines
+    assert any("NOT watertight" in line for line in lines)
+    assert not any("Yield" in line or "mesh, the view" in line for line in lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# The HTML page
+
+
+class PageParser(HTMLParser):
+    """Collects headings, <img> sources, every URL-bearing attribute and the tags used."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.headings: list[str] = []
+        self.images: list[str] = []
+        self.urls: list[str] = []
+        self.tags: set[str] = set()
+        self._heading: list[str] | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.tags.add(tag)
+        if tag in ("h2", "h3"):
+            self._heading = []
+        for name, value in attrs:
+            if name in ("src", "href", "srcset", "data", "action", "poster"):
+                self.urls.append(value or "")
+            if tag == "img" and name == "src":
+                self.images.append(value or "")
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("h2", "h3") and self._heading is not None:
+            self.headings.append("".join(self._heading))
+            self._heading = None
+
+    def handle_data(self, data: str) -> None:
+        if self._heading is not None:
+            self._heading.append(data)
+
+
+def all_figures() -> dict[str, bytes]:
+    rng = np.random.default_rng(4)
+    target = rng.uniform(0, 1, (3, 16, 16))
+    views = figure_views([("target", target), ("as built", 0.2 * target)], "views")
+    return {"views": views, "hole_map": figure_hole_map(rng.uniform(0, 0.1, (8, 8)), (0.25, 0.25)),
+            "display": figure_views([("display", target)], "display", gain_to_first=False),
+            "loss": figure_loss(np.geomspace(1, 1e-2, 20)), "eyebox": views,
+            "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0)}
+
+
+@pytest.fixture(scope="module")
+def evil_report() -> dict[str, Any]:
+    """A complete report whose second target is named like a script."""
+    return build_report(**complete_inputs(("letter", EVIL)))
+
+
+def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
+    figures = all_figures()
+    page = report_html(evil_report, figures, verdicts(evil_report, 1.3))
+    parser = PageParser()
+    parser.feed(page)
+    for _, heading in SECTION_TITLES:
+        assert heading in parser.headings
+    order = [parser.headings.index(h) for _, h in SECTION_TITLES]
+    assert order == sorted(order)  # reads top to bottom in the documented order
+    assert len(parser.images) == len(FIGURE_KEYS) == len(figures)
+    decoded = []
+    for src in parser.images:
+        prefix = "data:image/png;base64,"
+        assert src.startswith(prefix)
+        data = base64.b64decode(src[len(prefix):], validate=True)
+        assert png_size(data)
+        decoded.append(data)
+    assert sorted(decoded) == sorted(figures.values())
+    # self-contained: no script, stylesheet link or frame; every URL is data: or a local anchor
+    assert not {"script", "link", "iframe", "object", "embed"} & parser.tags
+    assert all(u.startswith(("data:image/png;base64,", "#")) for u in parser.urls)
+    assert "http://" not in page and "https://" not in page
+    assert "Quantization and fabrication cost 0.6 dB." in page
+
+
+def test_html_escapes_names(evil_report: dict[str, Any]) -> None:
+    inputs = complete_inputs(("letter", EVIL))
+    inputs["fabrication"]["violations"][0]["resolution"] = "<b>closed</b> & done"
+    inputs["config"]["notes"] = "</pre><img src=x onerror=alert(1)>"
+    page = report_html(build_report(**inputs), {}, [f"verdict with {EVIL}"])
+    assert "<script" not in page
+    assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
+    assert html_escaped(EVIL) in page
+    assert "&lt;b&gt;closed&lt;/b&gt; &amp; done" in page
+    parser = PageParser()
+    parser.feed(page)
+    assert parser.images == [] and "script" not in parser.tags
+
+
+def html_escaped(text: str) -> str:
+    return (text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+            .replace("'", "&#x27;").replace('"', "&quot;"))
+
+
+def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
+    page = report_html({**report, "tolerance": None}, {"loss": figure_loss(np.ones(3))}, [])
+    parser = PageParser()
+    parser.feed(page)
+    assert len(parser.images) == 1
+    assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 2  # tolerance: one message
+    assert "Tolerance analysis not computed." in page
+
+
+def test_html_rejects_bad_figures(report: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="not one the page places"):
+        report_html(report, {"lossy": figure_loss(np.ones(3))}, [])
+    with pytest.raises(ValueError, match="not PNG"):
+        report_html(report, {"loss": b"GIF89a"}, [])
+    with pytest.raises(ValueError, match="missing"):
+        report_html({k: v for k, v in report.items() if k != "mesh"}, {}, [])
+
+
+#: Appended by the browser test only: counts the images that decoded once the page has loaded.
+HOOK = ("window.addEventListener('load', () => { const images = [...document.images]; "
+        "document.body.dataset.imagesTotal = images.length; "
+        "document.body.dataset.imagesOk = images.filter("
+        "i => i.complete && i.naturalWidth > 0).length; });")
+CHROMIUM = "/usr/bin/chromium"
+
+
+def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:
+    """Load `page` in headless Chromium with HOOK appended: (images decoded, images)."""
+    browser = shutil.which("chromium") or (CHROMIUM if Path(CHROMIUM).exists() else None)
+    if browser is None:
+        pytest.skip("headless Chromium is not installed (Debian: apt-get install -y chromium)")
+    # The page's Content-Security-Policy forbids scripts; let exactly this hook run, so the
+    # images are also checked to load under the page's own policy.
+    digest = base64.b64encode(hashlib.sha256(HOOK.encode()).digest()).decode()
+    assert "default-src 'none';" in page
+    hooked = page.replace("default-src 'none';",
+                          f"default-src 'none'; script-src 'sha256-{digest}';")
+    hooked = hooked.replace("</body>", f"<script>{HOOK}</script>\n</body>")
+    path = folder / "report.html"
+    path.write_text(hooked, encoding="utf-8")
+    result = subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+         "--no-first-run", "--disable-background-networking", "--disable-component-update",
+         "--disable-sync", f"--user-data-dir={folder / 'profile'}",
+         "--virtual-time-budget=5000", "--dump-dom", path.as_uri()],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "Uncaught" not in result.stderr, result.stderr[-2000:]
+    # the malicious target name arrived as text, not as a script element
+    assert "alert('x')" not in result.stdout.replace(
+        "&lt;script&gt;alert('x')&lt;/script&gt;", "")
+    ok = re.search(r'data-images-ok="(\d+)"', result.stdout)
+    total = re.search(r'data-images-total="(\d+)"', result.stdout)
+    assert ok and total, f"the hook did not run; stderr: {result.stderr[-2000:]}"
+    return int(ok[1]), int(total[1])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("broken", [False, True], ids=["intact", "one-corrupt-figure"])
+def test_html_renders_in_headless_chromium(evil_report: dict[str, Any], tmp_path: Path,
+                                           broken: bool) -> None:
+    figures = all_figures()
+    if broken:  # a PNG signature over garbage: the browser must fail to decode exactly that one
+        figures["loss"] = figures["loss"][:8] + b"x" * 300
+    page = report_html(evil_report, figures, verdicts(evil_report))
+    ok, total = chromium_image_counts(page, tmp_path)
+    assert total == len(FIGURE_KEYS)
+    assert ok == total - broken
