@@ -275,8 +275,10 @@ class Renderer:
                               plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
             tilt_room = t / 2 * half / self._axis_length
         reach = keep_within + tilt_room
-        nsx = min(ncx, math.floor(2 * reach / px) + 2)
-        nsy = min(ncy, math.floor(2 * reach / py) + 2)
+        # The window may reach past the plate's edge (masked below); never clamp its size to
+        # the plate, which would shift it off the holes on narrow plates.
+        nsx = math.floor(2 * reach / px) + 2
+        nsy = math.floor(2 * reach / py) + 2
         oy, ox = torch.meshgrid(torch.arange(nsy, device=self.device),
                                 torch.arange(nsx, device=self.device), indexing="ij")
         oy, ox = oy.reshape(1, -1), ox.reshape(1, -1)

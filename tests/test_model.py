@@ -266,3 +266,15 @@ def test_fixed_display_samples_render_the_same_view(axis, thickness):
         (direct * display[:, :32, :32].mean()).sum().backward()
         (fixed * display[:, :32, :32].mean()).sum().backward()
         torch.testing.assert_close(a2.grad, a1.grad, rtol=1e-8, atol=1e-12)
+
+
+def test_narrow_plate_centre_hole_is_seen_centred():
+    """A plate narrower than the pupil's footprint: the one open hole on the axis shows up
+    centred in the view (the hole search must not slide off the plate)."""
+    scene = make_scene(cells=(5, 5), pitch=0.3, pixels=(40, 40), size=8.0, view=(11, 11),
+                       fov=(20.0, 20.0))
+    a = np.zeros((5, 5))
+    a[2, 2] = 0.3
+    view = render(scene, a, np.ones((1, 40, 40)))[0]
+    np.testing.assert_allclose(view, view[::-1, ::-1], atol=1e-12)
+    assert view[5, 5] == pytest.approx(view.max(), rel=1e-9) and view.max() > 0
