@@ -135,6 +135,16 @@ def _add_fabrication_flags(parser: argparse.ArgumentParser) -> None:
                        help="also write plate.step (a .step --out implies it)")
 
 
+def _add_validation_flags(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("validation")
+    group.add_argument("--no-validate", action="store_true",
+                       help="skip validation and the report (report.json/html, views.npz)")
+    group.add_argument("--tolerance-samples", type=int, metavar="N",
+                       help="Monte Carlo samples of the tolerance analysis (0 skips it)")
+    group.add_argument("--mesh-samples", type=int, metavar="N",
+                       help="rays per view pixel when re-tracing the written mesh (0 skips it)")
+
+
 def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
     from aperture_fab.fabricate import fabrication_settings
 
@@ -193,13 +203,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_design(args: argparse.Namespace) -> int:
     from aperture_fab.optimize import Interrupted
     from aperture_fab.pipeline import output_folder, run_design
+    from aperture_fab.validate import validation_settings
 
     config = _load_config(args)
     fabrication = _fabrication(args, config.extra)
+    validation = None if args.no_validate else validation_settings(
+        config.extra, {"tolerance_samples": args.tolerance_samples,
+                       "mesh_samples": args.mesh_samples})
     folder = output_folder(args.out)
     try:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
-                            resume=args.resume, progress=not args.quiet)
+                            validation=validation, resume=args.resume, progress=not args.quiet)
     except Interrupted as stop:
         print(f"\ninterrupted at iteration {stop.state['iteration']}; checkpoint saved in "
               f"{folder}. Continue with the same command and --resume.", file=sys.stderr)
@@ -242,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_config_flags(p)
     _add_fabrication_flags(p)
+    _add_validation_flags(p)
     p.set_defaults(func=_cmd_design)
 
     p = sub.add_parser("export", help="rebuild part files from a saved design",

@@ -9,8 +9,9 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ from aperture_fab.optimize import (
     resolve_device,
 )
 from aperture_fab.process import check_plate
+from aperture_fab.validate import ValidationSettings, validate
 
 __all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
 
@@ -67,6 +69,7 @@ class DesignResult:
     views: dict[str, np.ndarray]
     metrics: dict[str, dict[str, list[float]]]
     part: Part | None = None
+    timings_s: dict[str, float] = field(default_factory=dict)
 
 
 def _prepare(config: Config, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -104,14 +107,21 @@ def design(
             check_plate(fabrication.process, scene.plate)  # refuse before optimizing
         bounds = design_bounds(scene, fabrication.process)
     targets, shown = _prepare(config, images)
+    timings = {}
+    start = time.perf_counter()
     result = optimize(scene, targets, shown, settings, bounds=bounds, state=state,
                       on_checkpoint=on_checkpoint, progress=progress)
+    timings["optimize_s"] = time.perf_counter() - start
+    start = time.perf_counter()
     views, metrics = evaluate(config, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
         "optimized": (result.open_fraction, result.displays),
     })
+    timings["evaluate_s"] = time.perf_counter() - start
+    start = time.perf_counter()
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
-    return DesignResult(config, result, names, targets, views, metrics, part)
+    timings["quantize_build_s"] = time.perf_counter() - start
+    return DesignResult(config, result, names, targets, views, metrics, part, timings)
 
 
 def evaluate(
@@ -230,7 +240,8 @@ def _save_checkpoint(folder: Path, state: dict[str, Any], fingerprint: str) -> N
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
-               fabrication: FabricationSettings | None = None, resume: bool = False,
+               fabrication: FabricationSettings | None = None,
+               validation: ValidationSettings | None = None, resume: bool = False,
                progress: bool = True) -> DesignResult:
     """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint."""
     folder = output_folder(out)
@@ -256,9 +267,37 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         raise
     write_outputs(folder, result)
     if result.part is not None and fabrication is not None:
+        start = time.perf_counter()
         write_part(folder, result.part, fabrication, _formats(out, fabrication), progress)
+        result.timings_s["export_s"] = time.perf_counter() - start
+        if validation is not None:
+            write_report(folder, result, fabrication, validation)
     checkpoint.unlink(missing_ok=True)
     return result
+
+
+def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
+                 settings: ValidationSettings) -> None:
+    """Validate the part as written (plate.stl re-read from disk) and write report.json,
+    views.npz and report.html."""
+    from aperture_fab.evidence import assemble
+    from aperture_fab.exporters import read_stl
+    from aperture_fab.report import report_json
+
+    if result.part is None:
+        raise ValueError("no part to validate: design with fabrication settings first.")
+    mesh = read_stl((folder / "plate.stl").read_bytes())
+    checked = validate(result.config, result.targets, result.design.displays,
+                       result.design.open_fraction, result.part, fabrication.process,
+                       result.names, settings, mesh)
+    start = time.perf_counter()
+    evidence = assemble(result.config, result.names, result.targets, result.design.displays,
+                        result.design.loss_history, result.part, fabrication.process, checked,
+                        result.timings_s)
+    evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
+    write_atomic(folder / "views.npz", evidence.views_npz)
+    write_atomic(folder / "report.html", evidence.html)
+    write_atomic(folder / "report.json", report_json(evidence.report))
 
 
 def _formats(out: Path, fabrication: FabricationSettings) -> tuple[PartFormat, ...]:

@@ -1,0 +1,125 @@
+"""The validation report's contents from a validated design: report dict, figures, verdicts and
+the views archive. Values in, bytes out; the pipeline writes the files."""
+
+from __future__ import annotations
+
+import platform
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any
+
+import numpy as np
+
+from aperture_fab import report as rep
+from aperture_fab.config import Config, to_dict
+from aperture_fab.fabricate import Part
+from aperture_fab.process import Process
+from aperture_fab.quantize import layout_stats
+from aperture_fab.validate import Validation
+
+__all__ = ["Evidence", "assemble"]
+
+#: Wavelength for the diffraction verdict (green, where the eye is most sensitive).
+VERDICT_WAVELENGTH_MM = 530e-6
+#: Variants shown beside the target in the main figure, in order.
+SHOWN_VARIANTS = ("as_built", "optimized", "open", "regular_pinholes", "random",
+                  "as_built_mesh", "as_built_diffraction")
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """report: the report.json structure; html: report.html; views_npz: views.npz bytes."""
+
+    report: dict[str, Any]
+    html: str
+    views_npz: bytes
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for package in ("aperture-fab", "torch", "numpy", "trimesh", "manifold3d", "scikit-image"):
+        try:
+            out[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            out[package] = "not installed"
+    return out
+
+
+def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
+             displays: np.ndarray, loss_history: np.ndarray, part: Part, process: Process,
+             validation: Validation, timings_s: Mapping[str, float]) -> Evidence:
+    """Everything the report shows, from the design job's values."""
+    stats = layout_stats(part.layout)
+    fabrication = {
+        "process": process.name,
+        "holes": int(stats["hole_count"]),
+        "smallest_hole_diameter_mm": stats["smallest_hole_diameter_mm"],
+        "smallest_web_mm": stats["smallest_web_mm"],
+        "smallest_edge_web_mm": stats["smallest_edge_web_mm"],
+        "open_area_fraction": stats["open_area_fraction"],
+        "violations": [
+            {"rule": v.rule, "cell": None if v.cell is None else list(v.cell),
+             "value_mm": v.value_mm, "limit_mm": v.limit_mm, "resolution": v.resolution}
+            for v in part.layout.violations
+        ],
+    }
+    mesh = {"watertight": part.report.watertight, "genus": part.report.genus,
+            "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count}
+    tolerance = None
+    if validation.tolerance is not None:
+        t = validation.tolerance
+        tolerance = {"samples": t["samples"], "psnr_percentiles": t["psnr_percentiles"],
+                     "yield": t["yield"], "threshold_db": t["threshold_db"],
+                     "model": {k: v for k, v in t.items() if k not in (
+                         "samples", "psnr_percentiles", "yield", "threshold_db")}}
+    timings = {**timings_s, **validation.timings_s}
+    report = rep.build_report(metrics=validation.metrics, fabrication=fabrication, mesh=mesh,
+                              tolerance=tolerance, timings_s=timings,
+                              scene=rep.scene_dict(config.scene), config=to_dict(config),
+                              versions=_versions())
+    if validation.mesh_stderr is not None:
+        report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
+
+    first = names[0]
+    views = validation.views
+    rows = [("target", targets[0])] + [
+        (rep.VARIANT_LABELS.get(v, v), views[v][0, 0]) for v in SHOWN_VARIANTS if v in views]
+    figures = {
+        "views": rep.figure_views(rows, f"Target {first!r}: what the eye sees"),
+        "hole_map": rep.figure_hole_map(_radii(part), part.layout.pitch_mm),
+        "display": rep.figure_views([(f"display {n}", d) for n, d in zip(names, displays,
+                                                                           strict=True)],
+                                    "Display content", gain_to_first=False),
+        "loss": rep.figure_loss(loss_history),
+    }
+    if views["as_built"].shape[1] > 1:
+        figures["eyebox"] = rep.figure_views(
+            [(f"eye at {p}", views["as_built"][0, k])
+             for k, p in enumerate(config.scene.eye.positions_mm)], "As built across the eyebox")
+    if validation.tolerance is not None:
+        figures["tolerance"] = rep.figure_histogram(
+            np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])
+    blur = None
+    if stats["smallest_hole_diameter_mm"]:
+        from aperture_fab.diffraction import airy_blur_px
+
+        blur = airy_blur_px(stats["smallest_hole_diameter_mm"], VERDICT_WAVELENGTH_MM,
+                            config.scene.eye.view_step)
+    lines = rep.verdicts(report, diffraction_blur_px=blur)
+    html = rep.report_html(report, figures, lines)
+    archive = {
+        f"{variant}/{name}" + (f"/pos{k}" if v.shape[1] > 1 else ""): v[t, k]
+        for variant, v in views.items()
+        for t, name in enumerate(names)
+        for k in range(v.shape[1])
+    }
+    return Evidence(report, html, rep.views_npz(archive))
+
+
+def _radii(part: Part) -> np.ndarray:
+    nx, ny = part.layout.grid
+    radii = np.zeros((ny, nx))
+    radii[part.layout.cells[:, 0], part.layout.cells[:, 1]] = part.layout.radii_mm
+    return radii
+

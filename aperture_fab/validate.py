@@ -1,0 +1,277 @@
+"""Validation: what the eye sees through the part as built, beside the design and simple
+alternatives, and how tolerances spread it.
+
+Variants, each rendered for every target and eye position and judged the same way:
+
+- ``open``: no plate, the display showing the target;
+- ``regular_pinholes``: optimal pinholes on a regular lattice, the display showing elemental
+  images (for the nominal eye position);
+- ``random``: a uniform random mask (the dissertation's start), the display showing the target;
+- ``optimized``: the design before quantization;
+- ``quantized``: the holes as quantized (nominal radii) in the design model;
+- ``as_built``: the holes as the process makes them on average (its radius bias applied);
+- ``as_built_mesh``: an independent ray trace through the mesh that was written (nominal eye
+  position; Monte Carlo, its standard error reported);
+- ``as_built_diffraction``: ``as_built`` with each hole's Airy spread per colour channel.
+
+Tolerances (Monte Carlo): hole-radius bias and sigma of the process, gap error, eye position
+across the eyebox. Not modelled: hole position error and plate tilt (the model's holes sit on
+the cell grid, parallel to the display).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from aperture_fab.baselines import elemental_display, regular_pinholes
+from aperture_fab.config import Config
+from aperture_fab.fabricate import Part
+from aperture_fab.images import resample
+from aperture_fab.layout import HoleLayout
+from aperture_fab.mesh import PlateMesh
+from aperture_fab.metrics import metrics as view_metrics
+from aperture_fab.model import Renderer, render_open
+from aperture_fab.optimize import gain_mse, psnr_db, resolve_device
+from aperture_fab.process import Process
+from aperture_fab.scene import Eye, Plate, Scene
+
+__all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
+           "validate"]
+
+#: Default yield threshold: this far below the nominal as-built PSNR.
+YIELD_MARGIN_DB = 3.0
+
+
+@dataclass(frozen=True)
+class ValidationSettings:
+    """How much validation to do.
+
+    tolerance_samples: Monte Carlo samples of the tolerance analysis (0 skips it).
+    threshold_db: PSNR that counts as a good part for the yield; None: the nominal as-built
+        PSNR minus YIELD_MARGIN_DB.
+    gap_sigma_mm: assembly error of the display-to-plate gap (1 sigma).
+    eye_sigma_mm: eye position error across the eyebox (1 sigma, each axis).
+    mesh_samples: rays per view pixel for the mesh re-trace (0 skips it).
+    diffraction: render the diffraction-aware view.
+    seed: random seed (random mask, tolerance samples, ray sampling).
+    """
+
+    tolerance_samples: int = 16
+    threshold_db: float | None = None
+    gap_sigma_mm: float = 0.1
+    eye_sigma_mm: float = 1.0
+    mesh_samples: int = 256
+    diffraction: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("tolerance_samples", "mesh_samples", "seed"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 0):
+                raise ValueError(f"validation.{name} = {value!r} must be a whole number >= 0.")
+        for name in ("gap_sigma_mm", "eye_sigma_mm"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"validation.{name} = {value!r} must be >= 0 (mm).")
+
+
+def validation_settings(extra: Any, overrides: dict[str, Any] | None = None
+                        ) -> ValidationSettings:
+    """Settings from a config's [validation] table plus flag overrides (None values skipped)."""
+    values = dict(extra.get("validation", {}))
+    values.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    allowed = set(ValidationSettings.__dataclass_fields__)
+    unknown = sorted(set(values) - allowed)
+    if unknown:
+        raise ValueError(f"[validation] has unknown keys {unknown}; allowed: {sorted(allowed)}.")
+    return ValidationSettings(**values)
+
+
+@dataclass(frozen=True)
+class Validation:
+    """views: {variant: (T, P, C, ny, nx) float64} (as_built_mesh: P = 1, nominal position).
+    metrics: {variant: {target: {mse, psnr_db, ssim, light_efficiency}}} at the nominal eye
+        position, plus "eyebox" means when there are several positions.
+    mesh_stderr: (T, C, ny, nx) Monte Carlo standard error of as_built_mesh, or None.
+    tolerance: {"samples", "psnr_db": [...], "psnr_percentiles", "threshold_db", "yield"} or None.
+    timings_s: seconds per part of the validation.
+    """
+
+    views: dict[str, np.ndarray]
+    metrics: dict[str, dict[str, dict[str, float]]]
+    mesh_stderr: np.ndarray | None
+    tolerance: dict[str, Any] | None
+    timings_s: dict[str, float]
+
+
+def layout_fractions(layout: HoleLayout, bias_mm: float = 0.0) -> np.ndarray:
+    """Open-area fraction per cell (rows, cols) of the holes as made (radius + bias, >= 0)."""
+    nx, ny = layout.grid
+    px, py = layout.pitch_mm
+    a = np.zeros((ny, nx))
+    radii = np.clip(layout.radii_mm + bias_mm, 0, None)
+    a[layout.cells[:, 0], layout.cells[:, 1]] = math.pi * radii**2 / (px * py)
+    return a
+
+
+def _render_all(renderer: Renderer, a: np.ndarray, displays: list[torch.Tensor],
+                positions: range) -> np.ndarray:
+    dtype, device = renderer.dtype, renderer.device
+    a_t = torch.as_tensor(a, dtype=dtype, device=device)
+    with torch.no_grad():
+        return np.stack([
+            np.stack([renderer.render(a_t, d, p).cpu().double().numpy() for p in positions])
+            for d in displays
+        ])
+
+
+def validate(
+    config: Config,
+    targets: np.ndarray,
+    displays: np.ndarray,
+    open_fraction: np.ndarray,
+    part: Part,
+    process: Process,
+    names: tuple[str, ...],
+    settings: ValidationSettings,
+    mesh: PlateMesh | None = None,
+) -> Validation:
+    """Validate a design and its part.
+
+    targets: (T, C, ny, nx) linear, on the view grid; displays: (T, C, H, W) the display content.
+    open_fraction: (rows, cols) the optimized design before quantization.
+    mesh: the mesh as written and re-read (default: part.mesh).
+    """
+    scene = config.scene
+    device = resolve_device(config.optimizer.device)
+    dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    positions = range(len(scene.eye.positions_mm))
+    shown = [torch.as_tensor(d, dtype=dtype, device=device) for d in displays]
+    on_display = [torch.as_tensor(resample(t, scene.display.pixels), dtype=dtype, device=device)
+                  for t in targets]
+    rng = np.random.default_rng(settings.seed)
+    quantized = layout_fractions(part.layout)
+    as_built = layout_fractions(part.layout, process.radius_bias_mm)
+    pinholes = regular_pinholes(scene)
+    target_views = [torch.as_tensor(t, dtype=dtype, device=device) for t in targets]
+    views: dict[str, np.ndarray] = {}
+    with torch.no_grad():
+        views["open"] = np.stack([
+            np.stack([render_open(scene, d, p).cpu().double().numpy() for p in positions])
+            for d in on_display
+        ])
+    views["regular_pinholes"] = _render_all(
+        renderer, pinholes.open_fraction,
+        [elemental_display(scene, pinholes, t) for t in target_views], positions)
+    random_mask = rng.uniform(0, scene.plate.max_open_fraction, open_fraction.shape)
+    views["random"] = _render_all(renderer, random_mask, on_display, positions)
+    views["optimized"] = _render_all(renderer, open_fraction, shown, positions)
+    views["quantized"] = _render_all(renderer, quantized, shown, positions)
+    views["as_built"] = _render_all(renderer, as_built, shown, positions)
+    timings["render_s"] = time.perf_counter() - start
+
+    mesh_stderr = None
+    if settings.mesh_samples > 0:
+        from aperture_fab.retrace import trace_mesh_view
+
+        start = time.perf_counter()
+        traced = [trace_mesh_view(mesh if mesh is not None else part.mesh, scene,
+                                  d.cpu().double().numpy(), 0, settings.mesh_samples,
+                                  settings.seed) for d in shown]
+        views["as_built_mesh"] = np.stack([t.view[None] for t in traced])
+        mesh_stderr = np.stack([t.stderr for t in traced])
+        timings["mesh_retrace_s"] = time.perf_counter() - start
+    if settings.diffraction:
+        from aperture_fab.diffraction import diffraction_view
+
+        start = time.perf_counter()
+        a_t = torch.as_tensor(as_built, dtype=dtype, device=device)
+        with torch.no_grad():
+            views["as_built_diffraction"] = np.stack([
+                np.stack([diffraction_view(renderer, a_t, d, p).cpu().double().numpy()
+                          for p in positions])
+                for d in shown
+            ])
+        timings["diffraction_s"] = time.perf_counter() - start
+
+    metrics = _metrics(scene, views, targets, shown, on_display, names)
+    tolerance = None
+    if settings.tolerance_samples > 0:
+        start = time.perf_counter()
+        nominal = metrics["as_built"][names[0]]["psnr_db"]
+        tolerance = tolerance_analysis(config, targets, shown, part.layout, process, settings,
+                                       nominal - YIELD_MARGIN_DB if settings.threshold_db is None
+                                       else settings.threshold_db, device, dtype)
+        timings["tolerance_s"] = time.perf_counter() - start
+    return Validation(views, metrics, mesh_stderr, tolerance, timings)
+
+
+def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,
+             shown: list[torch.Tensor], on_display: list[torch.Tensor],
+             names: tuple[str, ...]) -> dict[str, dict[str, dict[str, float]]]:
+    """Metrics at the nominal position; light efficiency against the open display showing the
+    same content as the variant's display."""
+    with torch.no_grad():
+        open_shown = [float(render_open(scene, d).mean()) for d in shown]
+        open_target = [float(render_open(scene, d).mean()) for d in on_display]
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for variant, v in views.items():
+        reference = open_target if variant in ("open", "random") else open_shown
+        out[variant] = {
+            name: view_metrics(v[t, 0], targets[t], reference[t]) for t, name in enumerate(names)
+        }
+    return out
+
+
+def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Tensor],
+                       layout: HoleLayout, process: Process, settings: ValidationSettings,
+                       threshold_db: float, device: torch.device, dtype: torch.dtype
+                       ) -> dict[str, Any]:
+    """PSNR (first target) over Monte Carlo samples of the process and assembly tolerances."""
+    rng = np.random.default_rng(settings.seed + 1)
+    scene = config.scene
+    nominal_eye = scene.eye.positions_mm[0]
+    values = []
+    for _ in range(settings.tolerance_samples):
+        radii = layout.radii_mm + process.radius_bias_mm + rng.normal(
+            0, process.radius_sigma_mm, layout.radii_mm.shape)
+        sample = replace(layout, radii_mm=np.clip(radii, 1e-6, None))
+        a = layout_fractions(sample)
+        gap = max(1e-3, scene.plate.gap_mm + rng.normal(0, settings.gap_sigma_mm))
+        eye = (nominal_eye[0] + rng.normal(0, settings.eye_sigma_mm),
+               nominal_eye[1] + rng.normal(0, settings.eye_sigma_mm))
+        # The holes stay aimed at the nominal eye point: it comes first, the sample second.
+        moved = Scene(
+            scene.display,
+            Plate(scene.plate.cells, scene.plate.pitch_mm, gap, scene.plate.thickness_mm,
+                  scene.plate.hole_axis),
+            Eye(scene.eye.pupil_mm, scene.eye.eye_relief_mm, scene.eye.fov_deg,
+                scene.eye.view_pixels, scene.eye.focus_mm, (nominal_eye, eye), (1.0, 1.0)),
+        )
+        renderer = Renderer(moved, device=device, dtype=dtype)
+        with torch.no_grad():
+            view = renderer.render(torch.as_tensor(a, dtype=dtype, device=device), shown[0], 1)
+        values.append(psnr_db(float(gain_mse(view.cpu().double(),
+                                             torch.as_tensor(targets[0])))))
+    psnr = np.asarray(values)
+    return {
+        "samples": len(values),
+        "psnr_db": [float(v) for v in psnr],
+        "psnr_percentiles": {str(q): float(np.percentile(psnr, q)) for q in (5, 50, 95)},
+        "threshold_db": float(threshold_db),
+        "yield": float(np.mean(psnr >= threshold_db)),
+        "radius_bias_mm": process.radius_bias_mm,
+        "radius_sigma_mm": process.radius_sigma_mm,
+        "gap_sigma_mm": settings.gap_sigma_mm,
+        "eye_sigma_mm": settings.eye_sigma_mm,
+        "not_modelled": ["hole position error", "plate tilt"],
+    }
