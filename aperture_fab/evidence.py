@@ -11,11 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from aperture_fab import report as rep
 from aperture_fab.config import Config, to_dict
 from aperture_fab.fabricate import Part
+from aperture_fab.figures import figure_histogram, figure_hole_map, figure_loss, figure_views
 from aperture_fab.process import Process
 from aperture_fab.quantize import layout_stats
+from aperture_fab.report import VARIANT_LABELS, build_report, scene_dict, views_npz
+from aperture_fab.report_html import report_html, verdicts
 from aperture_fab.validate import Validation
 
 __all__ = ["Evidence", "assemble"]
@@ -74,31 +76,31 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
                      "model": {k: v for k, v in t.items() if k not in (
                          "samples", "psnr_percentiles", "yield", "threshold_db")}}
     timings = {**timings_s, **validation.timings_s}
-    report = rep.build_report(metrics=validation.metrics, fabrication=fabrication, mesh=mesh,
-                              tolerance=tolerance, timings_s=timings,
-                              scene=rep.scene_dict(config.scene), config=to_dict(config),
-                              versions=_versions())
+    report = build_report(metrics=validation.metrics, fabrication=fabrication, mesh=mesh,
+                          tolerance=tolerance, timings_s=timings,
+                          scene=scene_dict(config.scene), config=to_dict(config),
+                          versions=_versions())
     if validation.mesh_stderr is not None:
         report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
 
     first = names[0]
     views = validation.views
     rows = [("target", targets[0])] + [
-        (rep.VARIANT_LABELS.get(v, v), views[v][0, 0]) for v in SHOWN_VARIANTS if v in views]
+        (VARIANT_LABELS.get(v, v), views[v][0, 0]) for v in SHOWN_VARIANTS if v in views]
     figures = {
-        "views": rep.figure_views(rows, f"Target {first!r}: what the eye sees"),
-        "hole_map": rep.figure_hole_map(_radii(part), part.layout.pitch_mm),
-        "display": rep.figure_views([(f"display {n}", d) for n, d in zip(names, displays,
-                                                                           strict=True)],
-                                    "Display content", gain_to_first=False),
-        "loss": rep.figure_loss(loss_history),
+        "views": figure_views(rows, f"Target {first!r}: what the eye sees"),
+        "hole_map": figure_hole_map(_radii(part), part.layout.pitch_mm),
+        "display": figure_views([(f"display {n}", d) for n, d in zip(names, displays,
+                                                                       strict=True)],
+                                "Display content", gain_to_first=False),
+        "loss": figure_loss(loss_history),
     }
     if views["as_built"].shape[1] > 1:
-        figures["eyebox"] = rep.figure_views(
+        figures["eyebox"] = figure_views(
             [(f"eye at {p}", views["as_built"][0, k])
              for k, p in enumerate(config.scene.eye.positions_mm)], "As built across the eyebox")
     if validation.tolerance is not None:
-        figures["tolerance"] = rep.figure_histogram(
+        figures["tolerance"] = figure_histogram(
             np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])
     blur = None
     if stats["smallest_hole_diameter_mm"]:
@@ -106,15 +108,15 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
 
         blur = airy_blur_px(stats["smallest_hole_diameter_mm"], VERDICT_WAVELENGTH_MM,
                             config.scene.eye.view_step)
-    lines = rep.verdicts(report, diffraction_blur_px=blur)
-    html = rep.report_html(report, figures, lines)
+    lines = verdicts(report, diffraction_blur_px=blur)
+    html = report_html(report, figures, lines)
     archive = {
         f"{variant}/{name}" + (f"/pos{k}" if v.shape[1] > 1 else ""): v[t, k]
         for variant, v in views.items()
         for t, name in enumerate(names)
         for k in range(v.shape[1])
     }
-    return Evidence(report, html, rep.views_npz(archive))
+    return Evidence(report, html, views_npz(archive))
 
 
 def _radii(part: Part) -> np.ndarray:

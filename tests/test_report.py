@@ -22,24 +22,19 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from aperture_fab.config import to_dict
+from aperture_fab.figures import figure_histogram, figure_hole_map, figure_loss, figure_views
 from aperture_fab.metrics import METRIC_KEYS
 from aperture_fab.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
     SCHEMA_VERSION,
-    SECTION_TITLES,
     build_report,
-    figure_histogram,
-    figure_hole_map,
-    figure_loss,
-    figure_views,
-    report_html,
     report_json,
     scene_dict,
     validate_report,
-    verdicts,
     views_npz,
 )
+from aperture_fab.report_html import SECTION_TITLES, report_html, verdicts
 from tests.conftest import tiny_config
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
