@@ -9,7 +9,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -30,6 +30,7 @@ __all__ = [
     "resolve_device",
     "optimize",
     "initial_design",
+    "fit_display",
 ]
 
 #: The cosine schedule decays the learning rate to this share of its start.
@@ -288,3 +289,50 @@ def optimize(
         bounds=(lo, hi),
         stopped=stopped,
     )
+
+
+def fit_display(
+    scene: Scene,
+    targets: np.ndarray,
+    open_fraction: np.ndarray,
+    displays: np.ndarray,
+    settings: OptimizerSettings,
+    iterations: int,
+    *,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Re-fit the display content (T, C, H, W) to a fixed plate, e.g. the part as built, from
+    `displays`; the plate is hardware, the display content software. Returns the displays and
+    the loss history. Adam with the settings' learning rate and schedule, the same loss."""
+    device = resolve_device(settings.device)
+    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
+    weights = torch.tensor(scene.eye.weights, dtype=dtype)
+    weights = weights / weights.sum()
+    opt = torch.optim.Adam([shown], lr=settings.learning_rate)
+    schedule = replace(settings, iterations=iterations)
+    history = []
+    for iteration in tqdm(range(iterations), desc="fit display", disable=not progress,
+                          leave=False):
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(schedule, iteration)
+        opt.zero_grad(set_to_none=True)
+        total = torch.zeros((), dtype=dtype, device=device)
+        for t in range(target_t.shape[0]):
+            stack = renderer.display_stack(shown[t])
+            for p, w in enumerate(weights.tolist()):
+                total = total + w * gain_mse(renderer.render_stack(a, stack, p), target_t[t])
+        loss = total / target_t.shape[0]
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise DivergedError(f"the display fit's loss became {value} at iteration "
+                                f"{iteration}; lower the learning rate.")
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            shown.clamp_(0, 1)
+        history.append(value)
+    return shown.detach().cpu().double().numpy(), np.asarray(history)

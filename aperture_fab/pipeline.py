@@ -34,6 +34,7 @@ from aperture_fab.model import Renderer, render_open
 from aperture_fab.optimize import (
     Interrupted,
     MaskDesign,
+    fit_display,
     gain_mse,
     initial_design,
     optimize,
@@ -41,11 +42,14 @@ from aperture_fab.optimize import (
     resolve_device,
 )
 from aperture_fab.process import check_plate
-from aperture_fab.validate import ValidationSettings, validate
+from aperture_fab.validate import ValidationSettings, layout_fractions, validate
 
 __all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
+#: The display is re-fitted to the part as built for this share of the design's iterations.
+FIT_SHARE = 3
+MIN_FIT_ITERATIONS = 20
 PART_SUFFIXES = (".stl", ".step", ".stp", ".3mf", ".dxf", ".svg")
 
 
@@ -60,6 +64,9 @@ class DesignResult:
         for every target and eyebox position.
     metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position.
     part: the part as made (None when no fabrication settings were given).
+    built_displays: (T, C, H, W) display content re-fitted to the part as built (None when the
+        display shows the targets, or without a part): what the device should show.
+    timings_s: seconds per stage.
     """
 
     config: Config
@@ -69,6 +76,7 @@ class DesignResult:
     views: dict[str, np.ndarray]
     metrics: dict[str, dict[str, list[float]]]
     part: Part | None = None
+    built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
@@ -121,7 +129,18 @@ def design(
     start = time.perf_counter()
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
     timings["quantize_build_s"] = time.perf_counter() - start
-    return DesignResult(config, result, names, targets, views, metrics, part, timings)
+    built = None
+    if part is not None and settings.display == "optimized" and settings.iterations > 1:
+        # The plate is hardware and the display software: fit the display to the part as it
+        # will be made (quantized holes, the process's radius bias).
+        start = time.perf_counter()
+        as_built = layout_fractions(part.layout, fabrication.process.radius_bias_mm
+                                    if fabrication is not None else 0.0)
+        built, _ = fit_display(scene, targets, as_built, result.displays, settings,
+                               max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE),
+                               progress=progress)
+        timings["fit_display_s"] = time.perf_counter() - start
+    return DesignResult(config, result, names, targets, views, metrics, part, built, timings)
 
 
 def evaluate(
@@ -289,9 +308,10 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     mesh = read_stl((folder / "plate.stl").read_bytes())
     checked = validate(result.config, result.targets, result.design.displays,
                        result.design.open_fraction, result.part, fabrication.process,
-                       result.names, settings, mesh)
+                       result.names, settings, mesh, built_displays=result.built_displays)
     start = time.perf_counter()
-    evidence = assemble(result.config, result.names, result.targets, result.design.displays,
+    shown = result.design.displays if result.built_displays is None else result.built_displays
+    evidence = assemble(result.config, result.names, result.targets, shown,
                         result.design.loss_history, result.part, fabrication.process, checked,
                         result.timings_s)
     evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
@@ -333,12 +353,13 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
 
     d = result.design
     buffer = io.BytesIO()
+    shown = d.displays if result.built_displays is None else result.built_displays
     np.savez_compressed(buffer, open_fraction=d.open_fraction, displays=d.displays,
-                        loss_history=d.loss_history, bounds=np.asarray(d.bounds),
-                        names=np.asarray(result.names))
+                        built_displays=shown, loss_history=d.loss_history,
+                        bounds=np.asarray(d.bounds), names=np.asarray(result.names))
     write_atomic(folder / "design.npz", buffer.getvalue())
     for t, name in enumerate(result.names):
-        write_atomic(folder / f"display_{name}.png", encode_png(d.displays[t]))
+        write_atomic(folder / f"display_{name}.png", encode_png(shown[t]))
         write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
         for variant in ("initial", "optimized", "open", "regular_pinholes"):
             view = result.views[variant][t, 0]

@@ -141,10 +141,14 @@ def validate(
     names: tuple[str, ...],
     settings: ValidationSettings,
     mesh: PlateMesh | None = None,
+    *,
+    built_displays: np.ndarray | None = None,
 ) -> Validation:
     """Validate a design and its part.
 
-    targets: (T, C, ny, nx) linear, on the view grid; displays: (T, C, H, W) the display content.
+    targets: (T, C, ny, nx) linear, on the view grid; displays: (T, C, H, W) the display content
+    the design was optimized with; built_displays: the content re-fitted to the part (default:
+    displays), used for every variant made from the part.
     open_fraction: (rows, cols) the optimized design before quantization.
     mesh: the mesh as written and re-read (default: part.mesh).
     """
@@ -155,7 +159,9 @@ def validate(
     start = time.perf_counter()
     renderer = Renderer(scene, device=device, dtype=dtype)
     positions = range(len(scene.eye.positions_mm))
-    shown = [torch.as_tensor(d, dtype=dtype, device=device) for d in displays]
+    designed = [torch.as_tensor(d, dtype=dtype, device=device) for d in displays]
+    shown = designed if built_displays is None else [
+        torch.as_tensor(d, dtype=dtype, device=device) for d in built_displays]
     on_display = [torch.as_tensor(resample(t, scene.display.pixels), dtype=dtype, device=device)
                   for t in targets]
     rng = np.random.default_rng(settings.seed)
@@ -174,7 +180,7 @@ def validate(
         [elemental_display(scene, pinholes, t) for t in target_views], positions)
     random_mask = rng.uniform(0, scene.plate.max_open_fraction, open_fraction.shape)
     views["random"] = _render_all(renderer, random_mask, on_display, positions)
-    views["optimized"] = _render_all(renderer, open_fraction, shown, positions)
+    views["optimized"] = _render_all(renderer, open_fraction, designed, positions)
     views["quantized"] = _render_all(renderer, quantized, shown, positions)
     views["as_built"] = _render_all(renderer, as_built, shown, positions)
     timings["render_s"] = time.perf_counter() - start
@@ -203,7 +209,7 @@ def validate(
             ])
         timings["diffraction_s"] = time.perf_counter() - start
 
-    metrics = _metrics(scene, views, targets, shown, on_display, names)
+    metrics = _metrics(scene, views, targets, shown, designed, on_display, names)
     tolerance = None
     if settings.tolerance_samples > 0:
         start = time.perf_counter()
@@ -216,16 +222,22 @@ def validate(
 
 
 def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,
-             shown: list[torch.Tensor], on_display: list[torch.Tensor],
-             names: tuple[str, ...]) -> dict[str, dict[str, dict[str, float]]]:
+             shown: list[torch.Tensor], designed: list[torch.Tensor],
+             on_display: list[torch.Tensor], names: tuple[str, ...]
+             ) -> dict[str, dict[str, dict[str, float]]]:
     """Metrics at the nominal position; light efficiency against the open display showing the
     same content as the variant's display."""
     with torch.no_grad():
-        open_shown = [float(render_open(scene, d).mean()) for d in shown]
-        open_target = [float(render_open(scene, d).mean()) for d in on_display]
+        levels = {
+            "shown": [float(render_open(scene, d).mean()) for d in shown],
+            "designed": [float(render_open(scene, d).mean()) for d in designed],
+            "target": [float(render_open(scene, d).mean()) for d in on_display],
+        }
+    source = {"open": "target", "random": "target", "regular_pinholes": "target",
+              "optimized": "designed"}
     out: dict[str, dict[str, dict[str, float]]] = {}
     for variant, v in views.items():
-        reference = open_target if variant in ("open", "random") else open_shown
+        reference = levels[source.get(variant, "shown")]
         out[variant] = {
             name: view_metrics(v[t, 0], targets[t], reference[t]) for t, name in enumerate(names)
         }

@@ -86,3 +86,37 @@ def test_mesh_retrace_agrees_with_the_model_within_its_noise(validated):
         diff = views["as_built_mesh/t"] - views["quantized/t"]
     stderr = report["mesh_retrace_stderr_rms"]
     assert np.sqrt(np.mean(diff**2)) <= 2 * stderr
+
+
+def test_fit_display_adapts_the_content_to_a_fixed_plate():
+    """Re-fitting the display to the quantized plate lowers the loss from the design's content."""
+    import torch
+
+    from aperture_fab.config import resolve
+    from aperture_fab.model import Renderer
+    from aperture_fab.optimize import fit_display, gain_mse
+    from aperture_fab.pipeline import _prepare
+
+    config = resolve("near-eye", overrides={
+        "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
+        "plate.cells": [16, 16], "eye.view_pixels": [16, 16], "optimizer.device": "cpu",
+        "optimizer.precision": "float64"})
+    targets, shown = _prepare(config, [digit("3")])
+    rng = np.random.default_rng(0)
+    plate = np.where(rng.random((16, 16)) < 0.3, 0.2, 0.0)
+    fitted, history = fit_display(config.scene, targets, plate, shown, config.optimizer, 30)
+    assert fitted.shape == shown.shape and fitted.min() >= 0 and fitted.max() <= 1
+    renderer = Renderer(config.scene, dtype=torch.float64)
+
+    def loss(display):
+        view = renderer.render(torch.as_tensor(plate), torch.as_tensor(display[0]))
+        return float(gain_mse(view, torch.as_tensor(targets[0])))
+
+    assert loss(fitted) < 0.7 * loss(shown)
+    assert history[-1] < history[0]
+
+
+def test_the_display_written_is_fitted_to_the_part(validated):
+    with np.load(validated / "design.npz") as design:
+        assert design["built_displays"].shape == design["displays"].shape
+        assert not np.allclose(design["built_displays"], design["displays"])
