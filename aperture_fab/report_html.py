@@ -92,11 +92,15 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
                          "optimized design's.")
         efficiency = _mean(report, variant, "light_efficiency")
         if efficiency is not None:
-            lines.append(f"The eye sees {100 * efficiency:.0f} % of the light of the open display.")
+            lines.append(f"The eye sees {100 * efficiency:.2g} % of the light of the open "
+                         "display.")
     built, traced = _mean(report, "as_built"), _mean(report, "as_built_mesh")
     if built is not None and traced is not None:
+        noise = report.get("mesh_retrace_stderr_rms")
         lines.append(f"Traced through the written mesh, the view scores {traced:.1f} dB "
-                     f"({traced - built:+.1f} dB from the hole layout's trace).")
+                     f"({traced - built:+.1f} dB from the hole layout's trace)"
+                     + (f"; Monte Carlo noise {noise:.2g} RMS per pixel: more rays per pixel "
+                        "sharpen this check (--mesh-samples)." if noise else "."))
     diffracted = _mean(report, "as_built_diffraction")
     if built is not None and diffracted is not None:
         lines.append(f"With diffraction, the as-built view scores {diffracted:.1f} dB "
@@ -109,7 +113,8 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
                      f"{diffraction_blur_px:.1f} view pixels.")
     tolerance = report["tolerance"]
     if tolerance is not None:
-        text = (f"Yield at {tolerance['threshold_db']:g} dB over {tolerance['samples']} tolerance "
+        threshold = tolerance["threshold_db"]
+        text = (f"Yield at {threshold:.1f} dB over {tolerance['samples']} tolerance "
                 f"samples: {100 * tolerance['yield']:.0f} %.")
         low, median = tolerance["psnr_percentiles"]["5"], tolerance["psnr_percentiles"]["50"]
         if low is not None and median is not None:

@@ -329,7 +329,7 @@ def test_verdicts_hand_written(report: dict[str, Any]) -> None:
     assert ("Traced through the written mesh, the view scores 31.1 dB (-0.1 dB from the hole "
             "layout's trace).") in lines
     assert "Holes of 0.080 mm: diffraction blurs them by about 1.3 view pixels." in lines
-    assert any(line.startswith("Yield at 25 dB over 64 tolerance samples: 92 %.")
+    assert any(line.startswith("Yield at 25.0 dB over 64 tolerance samples: 92 %.")
                for line in lines)
     assert any(line.startswith("2 fabrication rule violations of the resin process")
                for line in lines)
