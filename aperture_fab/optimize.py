@@ -127,6 +127,33 @@ def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.T
     return state
 
 
+def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
+                 targets: torch.Tensor, efficiency_weight: float,
+                 fixed: list[list[torch.Tensor]] | None = None) -> torch.Tensor:
+    """DESIGN.md's loss: gain-corrected MSE, weighted over eye positions, averaged over targets,
+    plus efficiency_weight x (1 - light efficiency). fixed: per target and position, display
+    samples from `Renderer.fixed_samples` instead of re-filtering `displays`."""
+    scene = renderer.scene
+    weights = torch.tensor(scene.eye.weights, dtype=renderer.dtype)
+    weights = weights / weights.sum()
+    total = torch.zeros((), dtype=renderer.dtype, device=renderer.device)
+    for t in range(targets.shape[0]):
+        if fixed is not None:
+            per_position = fixed[t]
+        else:
+            per_position = [renderer.display_stack(displays[t])] * len(weights)
+        for p, w in enumerate(weights.tolist()):
+            view = renderer.render_stack(a, per_position[p], p)
+            loss = gain_mse(view, targets[t])
+            if efficiency_weight > 0:
+                open_view = render_open(scene, displays[t], p,
+                                        pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
+                efficiency = view.mean() / (open_view.mean() + 1e-12)
+                loss = loss + efficiency_weight * (1 - efficiency)
+            total = total + w * loss
+    return total / targets.shape[0]
+
+
 def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
                    settings: OptimizerSettings, bounds: tuple[float, float] | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -196,8 +223,6 @@ def optimize(
         opt = torch.optim.SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
     if state["optimizer"] is not None:
         opt.load_state_dict(state["optimizer"])
-    weights = torch.tensor(scene.eye.weights, dtype=dtype)
-    weights = weights / weights.sum()
     fixed = None
     if display_param is None:  # the display shows the targets: sample them once
         with torch.no_grad():
@@ -208,22 +233,7 @@ def optimize(
     def loss_fn() -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
         displays = shown_t if display_param is None else display_param
-        total = torch.zeros((), dtype=dtype, device=device)
-        for t in range(target_t.shape[0]):
-            if fixed is not None:
-                per_position = fixed[t]
-            else:
-                per_position = [renderer.display_stack(displays[t])] * len(weights)
-            for p, w in enumerate(weights.tolist()):
-                view = renderer.render_stack(a, per_position[p], p)
-                loss = gain_mse(view, target_t[t])
-                if settings.efficiency_weight > 0:
-                    open_view = render_open(scene, displays[t], p,
-                                            pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
-                    efficiency = view.mean() / (open_view.mean() + 1e-12)
-                    loss = loss + settings.efficiency_weight * (1 - efficiency)
-                total = total + w * loss
-        return total / target_t.shape[0]
+        return _design_loss(renderer, a, displays, target_t, settings.efficiency_weight, fixed)
 
     # SGD steps on the summed squared error over the view (the dissertation's per-pixel scale:
     # its lr 0.8 is meaningless on a mean); Adam is invariant to the scale.
@@ -310,8 +320,6 @@ def fit_display(
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
-    weights = torch.tensor(scene.eye.weights, dtype=dtype)
-    weights = weights / weights.sum()
     opt = torch.optim.Adam([shown], lr=settings.learning_rate)
     schedule = replace(settings, iterations=iterations)
     history = []
@@ -320,12 +328,7 @@ def fit_display(
         for group in opt.param_groups:
             group["lr"] = _lr_at(schedule, iteration)
         opt.zero_grad(set_to_none=True)
-        total = torch.zeros((), dtype=dtype, device=device)
-        for t in range(target_t.shape[0]):
-            stack = renderer.display_stack(shown[t])
-            for p, w in enumerate(weights.tolist()):
-                total = total + w * gain_mse(renderer.render_stack(a, stack, p), target_t[t])
-        loss = total / target_t.shape[0]
+        loss = _design_loss(renderer, a, shown, target_t, 0.0)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise DivergedError(f"the display fit's loss became {value} at iteration "
