@@ -13,7 +13,7 @@ file; what it leaves out comes from the preset.
                 positions_mm = [[x, y], ...], weights = [...]
     [optimizer] method, learning_rate, momentum, iterations, schedule, init, display,
                 efficiency_weight, plateau_patience, plateau_tolerance, seed, precision,
-                device, checkpoint_every
+                device, checkpoint_every, quantize_share
 
 Other top-level tables (e.g. [process], [validation]) belong to other stages: they are kept as
 they are in `Config.extra`. Unknown keys inside the four sections above are errors.
@@ -53,7 +53,7 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
             "weights"),
     "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
                   "display", "efficiency_weight", "plateau_patience", "plateau_tolerance", "seed",
-                  "precision", "device", "checkpoint_every"),
+                  "precision", "device", "checkpoint_every", "quantize_share"),
 }
 
 INFINITY = "infinity"
@@ -62,7 +62,7 @@ DISPLAY_FOV = "display"
 _FLOATS = {
     "display.width_mm", "display.height_mm", "plate.gap_mm", "plate.thickness_mm",
     "eye.pupil_mm", "eye.eye_relief_mm", "optimizer.learning_rate", "optimizer.momentum",
-    "optimizer.efficiency_weight", "optimizer.plateau_tolerance",
+    "optimizer.efficiency_weight", "optimizer.plateau_tolerance", "optimizer.quantize_share",
 }
 _WHOLES = {
     "optimizer.iterations", "optimizer.plateau_patience", "optimizer.seed",

@@ -5,6 +5,7 @@ Values in, values out; the pipeline writes the files.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -15,8 +16,8 @@ from aperture_fab.exporters import dxf_bytes, holes_csv, stl_bytes, svg_text, th
 from aperture_fab.layout import HoleLayout
 from aperture_fab.mesh import MeshReport, PlateMesh, build_mesh, check_mesh
 from aperture_fab.process import Process, open_fraction_bounds, resolve_process
-from aperture_fab.quantize import quantize
-from aperture_fab.scene import Scene
+from aperture_fab.quantize import UnmakeableError, made_sizes, quantize
+from aperture_fab.scene import Plate, Scene
 
 __all__ = [
     "PART_FORMATS",
@@ -25,6 +26,8 @@ __all__ = [
     "FabricationSettings",
     "fabrication_settings",
     "design_bounds",
+    "drawn_fractions",
+    "eye_distance_mm",
     "make_part",
     "part_files",
 ]
@@ -86,11 +89,16 @@ def fabrication_settings(extra: Mapping[str, Any], overrides: Mapping[str, Any] 
 
 def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:
     """Open-area fractions the optimizer may use: up to the largest hole the process makes in a
-    cell; below the smallest makeable hole quantization diffuses the area, so the low end is 0."""
+    cell (as made); below the smallest makeable hole quantization diffuses the area, so the low
+    end is 0."""
     _, a_max = open_fraction_bounds(process, scene.plate)
     if a_max <= 0:
         return (0.0, scene.plate.max_open_fraction)  # unmakeable: make_part says why
-    return (0.0, min(a_max, scene.plate.max_open_fraction))
+    try:
+        made = made_sizes(scene.plate, process, eye_distance_mm(scene)).hi
+    except UnmakeableError:  # forced past the process's rules: make_part records them
+        made = a_max
+    return (0.0, min(made, scene.plate.max_open_fraction))
 
 
 @dataclass(frozen=True)
@@ -109,12 +117,33 @@ class Part:
     corner_cut_mm: float
 
 
+def drawn_fractions(open_fraction: np.ndarray, plate: Plate, process: Process) -> np.ndarray:
+    """The open fractions to draw so that the process makes `open_fraction` (rows, cols): each
+    open cell's radius less the process's radius bias (made = drawn + bias)."""
+    a = np.asarray(open_fraction, dtype=np.float64)
+    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
+    made_r = np.sqrt(np.clip(a, 0, None) * cell / math.pi)
+    # No wider than the cell: what the bias cannot add there, quantization records.
+    drawn_r = np.where(a > 0, np.clip(made_r - process.radius_bias_mm, 0, min(plate.pitch_mm) / 2),
+                       0.0)
+    return math.pi * drawn_r**2 / cell
+
+
+def eye_distance_mm(scene: Scene) -> float:
+    """Plate mid-thickness to the pupil: where chief-ray holes converge."""
+    return scene.eye.eye_relief_mm + scene.plate.thickness_mm / 2
+
+
 def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSettings) -> Part:
-    """Quantize to makeable holes and build the checked solid."""
+    """Quantize to makeable holes and build the checked solid.
+
+    open_fraction: (rows, cols) the open fractions wanted as made; the holes are drawn larger
+    or smaller by the process's radius bias so that they come out at that size.
+    """
     plate, eye = scene.plate, scene.eye
     process = settings.process
-    layout = quantize(open_fraction, plate, process, tilt_target_mm=eye.positions_mm[0],
-                      eye_distance_mm=eye.eye_relief_mm + plate.thickness_mm / 2,
+    layout = quantize(drawn_fractions(open_fraction, plate, process), plate, process,
+                      tilt_target_mm=eye.positions_mm[0], eye_distance_mm=eye_distance_mm(scene),
                       force=settings.force)
     margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
     cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from aperture_fab.baselines import elemental_display, regular_pinholes
 from aperture_fab.model import Renderer, render_open
+from aperture_fab.quantize import MadeSizes
 from aperture_fab.scene import Scene
 from aperture_fab.settings import OptimizerSettings
 
@@ -50,6 +51,9 @@ class MaskDesign:
     loss_history: (N,) float64, loss per iteration.
     bounds: (a_min, a_max), the open-area fractions the optimizer was allowed.
     stopped: why it stopped: "completed" or "plateau".
+    continuous: when the last iterations saw the plate snapped to makeable holes, the design
+        (open_fraction, displays) just before: the unconstrained optimum. `open_fraction` is
+        then makeable as it is (every value one of MadeSizes). None otherwise.
     """
 
     open_fraction: np.ndarray
@@ -57,6 +61,7 @@ class MaskDesign:
     loss_history: np.ndarray
     bounds: tuple[float, float]
     stopped: str
+    continuous: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class Interrupted(Exception):
@@ -123,8 +128,26 @@ def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.T
         # sigmoid would freeze the black and white pixels that elemental images are full of.
         "display": displays.clamp(0, 1) if settings.display == "optimized" else None,
         "optimizer": None,
+        # Fabrication-aware phase: the first iteration that sees makeable holes, and the
+        # design just before it.
+        "snap_from": settings.iterations - round(settings.quantize_share * settings.iterations),
+        "continuous": None,
     }
     return state
+
+
+def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
+    """The nearest makeable fraction forward, the identity backward (straight through), so
+    the loss sees the holes the process makes and the gradient still moves every cell."""
+    with torch.no_grad():
+        if made.levels is None:
+            snap = torch.where(a < made.lo / 2, torch.zeros_like(a), a.clamp(made.lo, made.hi))
+        else:
+            levels = torch.as_tensor(made.levels, dtype=a.dtype, device=a.device)
+            index = torch.searchsorted(levels, a.contiguous()).clamp(1, len(levels) - 1)
+            below, above = levels[index - 1], levels[index]
+            snap = torch.where(a - below <= above - a, below, above)
+    return a + (snap - a).detach()
 
 
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
@@ -168,10 +191,15 @@ def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarra
     return a.numpy(), np.asarray(displays, dtype=np.float64)
 
 
-def _lr_at(settings: OptimizerSettings, iteration: int) -> float:
+def _lr_at(settings: OptimizerSettings, iteration: int, snap_from: int | None = None) -> float:
+    """The learning rate; the cosine runs once over the continuous iterations and again over
+    the snapped ones (from snap_from), so that holes can still move between makeable sizes."""
     if settings.schedule == "constant":
         return settings.learning_rate
-    phase = min(1.0, iteration / max(1, settings.iterations - 1))
+    first, last = 0, settings.iterations
+    if snap_from is not None:
+        first, last = (snap_from, last) if iteration >= snap_from else (0, snap_from)
+    phase = min(1.0, (iteration - first) / max(1, last - first - 1))
     return settings.learning_rate * (COSINE_FLOOR + (1 - COSINE_FLOOR)
                                      * 0.5 * (1 + math.cos(math.pi * phase)))
 
@@ -183,6 +211,7 @@ def optimize(
     settings: OptimizerSettings,
     *,
     bounds: tuple[float, float] | None = None,
+    made: MadeSizes | None = None,
     state: dict[str, Any] | None = None,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = True,
@@ -192,6 +221,8 @@ def optimize(
     target_displays: (T, C, H, W) the targets on the display's pixel grid (shown as is in
     display mode "target", and the start of optimized displays for non-pinhole inits).
     bounds: allowed open-area fractions (a_min, a_max); default (0, the largest hole a cell takes).
+    made: the fractions a process makes; the last settings.quantize_share of the iterations
+        (or all after a plateau) see the plate snapped to them, so the result is makeable.
     state: a checkpoint from `on_checkpoint` or `Interrupted.state`, to resume.
     """
     device = resolve_device(settings.device)
@@ -230,10 +261,23 @@ def optimize(
             fixed = [[renderer.fixed_samples(s, p) for p in range(len(scene.eye.weights))]
                      for s in stacks]
 
-    def loss_fn() -> torch.Tensor:
+    def plate(iteration: int) -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
+        if made is not None and iteration >= state["snap_from"]:
+            return _snapped(a, made)
+        return a
+
+    def loss_fn(iteration: int) -> torch.Tensor:
         displays = shown_t if display_param is None else display_param
-        return _design_loss(renderer, a, displays, target_t, settings.efficiency_weight, fixed)
+        return _design_loss(renderer, plate(iteration), displays, target_t,
+                            settings.efficiency_weight, fixed)
+
+    def keep_continuous() -> None:
+        with torch.no_grad():
+            state["continuous"] = (
+                plate(-1).detach().cpu().clone(),
+                None if display_param is None else display_param.detach().cpu().clone(),
+            )
 
     # SGD steps on the summed squared error over the view (the dissertation's per-pixel scale:
     # its lr 0.8 is meaningless on a mean); Adam is invariant to the scale.
@@ -248,6 +292,8 @@ def optimize(
             "mask_logits": mask_logits.detach().cpu().clone(),
             "display": None if display_param is None else display_param.detach().cpu().clone(),
             "optimizer": copy.deepcopy(opt.state_dict()),
+            "snap_from": state["snap_from"],
+            "continuous": state["continuous"],
         }
 
     stopped = "completed"
@@ -258,9 +304,13 @@ def optimize(
     try:
         for iteration in range(start, settings.iterations):
             for group in opt.param_groups:
-                group["lr"] = _lr_at(settings, iteration)
+                group["lr"] = _lr_at(settings, iteration,
+                                     None if made is None else state["snap_from"])
+            if made is not None and iteration == state["snap_from"]:
+                keep_continuous()
+                state["best"] = math.inf  # the snapped loss starts a new curve
             opt.zero_grad(set_to_none=True)
-            loss = loss_fn()
+            loss = loss_fn(iteration)
             value = float(loss.detach())
             if not math.isfinite(value):
                 raise DivergedError(
@@ -282,6 +332,9 @@ def optimize(
                 on_checkpoint(snapshot(done))
             if settings.plateau_patience and iteration - state["best_iteration"] >= \
                     settings.plateau_patience:
+                if made is not None and iteration + 1 < state["snap_from"]:
+                    state["snap_from"] = iteration + 1  # converged: go on to makeable holes
+                    continue
                 stopped = "plateau"
                 break
     except KeyboardInterrupt:
@@ -290,14 +343,21 @@ def optimize(
         raise Interrupted(snapshot(len(state["history"]))) from None
     bar.close()
     with torch.no_grad():
-        a = lo + (hi - lo) * torch.sigmoid(mask_logits)
-        displays = shown_t if display_param is None else display_param
+        a = (lo + (hi - lo) * torch.sigmoid(mask_logits)).cpu().double().numpy()
+        displays = (shown_t if display_param is None else display_param).cpu().double().numpy()
+    continuous = None
+    if made is not None and state["continuous"] is not None:
+        a = made.snap(a)
+        kept_a, kept_display = state["continuous"]
+        continuous = (kept_a.double().numpy(),
+                      displays if kept_display is None else kept_display.double().numpy())
     return MaskDesign(
-        open_fraction=a.detach().cpu().double().numpy(),
-        displays=displays.detach().cpu().double().numpy(),
+        open_fraction=a,
+        displays=displays,
         loss_history=np.asarray(state["history"], dtype=np.float64),
         bounds=(lo, hi),
         stopped=stopped,
+        continuous=continuous,
     )
 
 

@@ -26,6 +26,7 @@ from aperture_fab.fabricate import (
     Part,
     PartFormat,
     design_bounds,
+    eye_distance_mm,
     make_part,
     part_files,
 )
@@ -42,6 +43,7 @@ from aperture_fab.optimize import (
     resolve_device,
 )
 from aperture_fab.process import check_plate
+from aperture_fab.quantize import made_sizes
 from aperture_fab.validate import ValidationSettings, layout_fractions, validate
 
 __all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
@@ -109,28 +111,32 @@ def design(
         raise ValueError("no targets given; pass at least one image.")
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
-    bounds = None
+    bounds = made = None
     if fabrication is not None:
         if not fabrication.force:
             check_plate(fabrication.process, scene.plate)  # refuse before optimizing
+            if settings.quantize_share > 0:
+                made = made_sizes(scene.plate, fabrication.process, eye_distance_mm(scene))
         bounds = design_bounds(scene, fabrication.process)
     targets, shown = _prepare(config, images)
     timings = {}
     start = time.perf_counter()
-    result = optimize(scene, targets, shown, settings, bounds=bounds, state=state,
+    result = optimize(scene, targets, shown, settings, bounds=bounds, made=made, state=state,
                       on_checkpoint=on_checkpoint, progress=progress)
     timings["optimize_s"] = time.perf_counter() - start
     start = time.perf_counter()
     views, metrics = evaluate(config, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
-        "optimized": (result.open_fraction, result.displays),
+        "optimized": optimum(result),
     })
     timings["evaluate_s"] = time.perf_counter() - start
     start = time.perf_counter()
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
     timings["quantize_build_s"] = time.perf_counter() - start
     built = None
-    if part is not None and settings.display == "optimized" and settings.iterations > 1:
+    if part is not None and settings.display == "optimized" and result.continuous is not None:
+        built = result.displays  # optimized for the holes as made
+    elif part is not None and settings.display == "optimized" and settings.iterations > 1:
         # The plate is hardware and the display software: fit the display to the part as it
         # will be made (quantized holes, the process's radius bias).
         start = time.perf_counter()
@@ -141,6 +147,13 @@ def design(
                                progress=progress)
         timings["fit_display_s"] = time.perf_counter() - start
     return DesignResult(config, result, names, targets, views, metrics, part, built, timings)
+
+
+def optimum(design: MaskDesign) -> tuple[np.ndarray, np.ndarray]:
+    """The optimized design before quantization: (open fractions, displays)."""
+    if design.continuous is not None:
+        return design.continuous
+    return design.open_fraction, design.displays
 
 
 def evaluate(
@@ -306,9 +319,10 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     if result.part is None:
         raise ValueError("no part to validate: design with fabrication settings first.")
     mesh = read_stl((folder / "plate.stl").read_bytes())
-    checked = validate(result.config, result.targets, result.design.displays,
-                       result.design.open_fraction, result.part, fabrication.process,
-                       result.names, settings, mesh, built_displays=result.built_displays)
+    open_fraction, displays = optimum(result.design)
+    checked = validate(result.config, result.targets, displays, open_fraction, result.part,
+                       fabrication.process, result.names, settings, mesh,
+                       built_displays=result.built_displays)
     start = time.perf_counter()
     shown = result.design.displays if result.built_displays is None else result.built_displays
     evidence = assemble(result.config, result.names, result.targets, shown,

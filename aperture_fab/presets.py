@@ -74,6 +74,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "precision": "float32",
             "device": "auto",
             "checkpoint_every": 50,
+            "quantize_share": 0.3,
         },
     },
     "seed": {
@@ -114,6 +115,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "precision": "float32",
             "device": "auto",
             "checkpoint_every": 50,
+            "quantize_share": 0.3,
         },
     },
 }

@@ -52,7 +52,7 @@ from aperture_fab.process import (
 )
 from aperture_fab.scene import Plate
 
-__all__ = ["UnmakeableError", "layout_stats", "quantize"]
+__all__ = ["MadeSizes", "UnmakeableError", "layout_stats", "made_sizes", "quantize"]
 
 #: A design losing more than this share of its open area is refused (unless forced).
 MAX_LOST_FRACTION = 0.5
@@ -176,6 +176,78 @@ def _lost_area_error(a: np.ndarray, process: Process, plate: Plate, lost: float)
     )
 
 
+def _radius_rules(process: Process, plate: Plate) -> tuple[float, float, float]:
+    """(smallest radius, largest radius, web) in mm; when no hole fits (only when forced) both
+    rules are relaxed to what the cell geometry allows."""
+    r_lo, r_hi = hole_radius_bounds(process, plate)
+    min_web = process.min_web_for(plate.thickness_mm)
+    if r_hi < r_lo:
+        cap = FORCED_MAX_RADIUS_FRACTION * min(plate.pitch_mm)
+        r_lo, r_hi = min(r_lo, cap), max(r_hi, cap)
+        min_web = min(plate.pitch_mm) - 2 * r_hi
+    return r_lo, r_hi, min_web
+
+
+def _cell_radius(plate: Plate, min_web: float, r_hi: float, top_scale: float) -> float:
+    """The largest radius that keeps half a web inside the cell at both faces."""
+    return min(min(plate.pitch_mm) * top_scale / 2 - min_web / 2, r_hi)
+
+
+@dataclass(frozen=True)
+class MadeSizes:
+    """The open-area fractions a process makes in a cell of a plate: what a design can ask for.
+
+    levels: (K,) float64, sorted, starting at 0 (closed): the made open fractions
+        pi (r + bias)^2 / (px py) of every allowed drawn radius r (process step or list), or
+        None when the process draws any radius in a range.
+    lo, hi: smallest and largest made open fraction (continuous processes; also the ends of
+        `levels`, 0 excluded).
+    """
+
+    levels: np.ndarray | None
+    lo: float
+    hi: float
+
+    def snap(self, a: np.ndarray) -> np.ndarray:
+        """The nearest makeable fraction (in area) of each of `a`."""
+        a = np.asarray(a, dtype=np.float64)
+        if self.levels is None:
+            return np.where(a < self.lo / 2, 0.0, np.clip(a, self.lo, self.hi))
+        index = np.clip(np.searchsorted(self.levels, a), 1, len(self.levels) - 1)
+        below, above = self.levels[index - 1], self.levels[index]
+        return np.where(a - below <= above - a, below, above)
+
+
+def made_sizes(plate: Plate, process: Process, eye_distance_mm: float | None = None
+               ) -> MadeSizes:
+    """The open fractions `quantize` can produce, as made (the process's radius bias applied).
+
+    eye_distance_mm: plate mid-thickness to the pupil (chief-ray holes lose room at the top
+    face, as in `quantize`). Raises UnmakeableError when the process cannot make the plate.
+    """
+    check_plate(process, plate)  # says why no hole fits
+    r_lo, r_hi, min_web = _radius_rules(process, plate)
+    top_scale = 1.0
+    if plate.hole_axis == "chief_ray" and eye_distance_mm is not None:
+        top_scale = 1.0 - plate.thickness_mm / (2 * eye_distance_mm)
+    sizes = _allowed_sizes(process, r_lo, r_hi)
+    top = _largest_size(sizes, _cell_radius(plate, min_web, r_hi, top_scale), r_lo)
+    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
+
+    def made(r: np.ndarray) -> np.ndarray:
+        return math.pi * np.clip(r + process.radius_bias_mm, 0, None) ** 2 / cell
+
+    if sizes.radii_mm is None:
+        lo, hi = made(np.array([r_lo, top]))
+        return MadeSizes(None, float(lo), float(hi))
+    radii = np.array([r for r in sizes.radii_mm if r <= top + EPS_MM])
+    if radii.size == 0:
+        raise UnmakeableError(f"process {process.name!r}: no allowed hole size fits a "
+                              f"{min(plate.pitch_mm):g} mm cell.")
+    levels = np.concatenate([[0.0], made(radii)])
+    return MadeSizes(levels, float(levels[1]), float(levels[-1]))
+
+
 def quantize(
     open_fraction: np.ndarray,
     plate: Plate,
@@ -213,13 +285,7 @@ def quantize(
             raise
         violations.append(Violation("process", None, t, 0.0, f"forced despite: {err}"))
 
-    r_lo, r_hi = hole_radius_bounds(process, plate)
-    min_web = process.min_web_for(t)
-    if r_hi < r_lo:
-        # Forced past an impossible pitch: relax both rules to what the cell geometry allows.
-        cap = FORCED_MAX_RADIUS_FRACTION * min(px, py)
-        r_lo, r_hi = min(r_lo, cap), max(r_hi, cap)
-        min_web = min(px, py) - 2 * r_hi
+    r_lo, r_hi, min_web = _radius_rules(process, plate)
     sizes = _allowed_sizes(process, r_lo, r_hi)
 
     # Hole axes, and the largest radius each cell allows at both faces.
@@ -249,7 +315,7 @@ def quantize(
     else:
         ax = np.zeros_like(cx)
         ay = np.zeros_like(cy)
-    r_cell = min(min(px, py) * top_scale / 2 - min_web / 2, r_hi)
+    r_cell = _cell_radius(plate, min_web, r_hi, top_scale)
 
     least_margin = overhang + min_web / 2
     if outline_margin_mm is None:

@@ -50,6 +50,10 @@ class OptimizerSettings:
     precision: "float32" or "float64".
     device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N".
     checkpoint_every: iterations between checkpoints in a file-backed run.
+    quantize_share: share of the iterations, at the end, that see the plate snapped to the holes
+        the fabrication process makes (forward snapped, gradient straight through), so the
+        display content and the other holes adapt to what is made; 0: quantize afterwards only.
+        Used when designing for a process.
     """
 
     method: Method = "adam"
@@ -66,6 +70,7 @@ class OptimizerSettings:
     precision: Precision = "float32"
     device: str = "auto"
     checkpoint_every: int = 50
+    quantize_share: float = 0.3
 
     def __post_init__(self) -> None:
         _check_choice("optimizer.method", self.method, METHODS)
@@ -94,6 +99,11 @@ class OptimizerSettings:
             raise ValueError(
                 f"optimizer.efficiency_weight = {self.efficiency_weight!r} must be >= 0 "
                 "(0 ignores the light level)."
+            )
+        if not (math.isfinite(self.quantize_share) and 0 <= self.quantize_share <= 1):
+            raise ValueError(
+                f"optimizer.quantize_share = {self.quantize_share!r} is out of range; allowed: "
+                "0 to 1 (the share of iterations that see makeable holes; 0 turns it off)."
             )
         if not (math.isfinite(self.plateau_tolerance) and 0 <= self.plateau_tolerance < 1):
             raise ValueError(
