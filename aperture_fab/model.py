@@ -188,12 +188,42 @@ class _PairWeights(torch.autograd.Function):
         return grad_radius, None, None, None, None, None, None
 
 
+def _checked_offsets(scene: Scene, offsets: np.ndarray | None) -> np.ndarray | None:
+    """The hole offsets as a float64 (rows, cols, 2) array, or a ValueError naming the fix."""
+    if offsets is None:
+        return None
+    cells = (scene.plate.cells[1], scene.plate.cells[0], 2)
+    array = np.asarray(offsets, dtype=np.float64)
+    if array.shape != cells:
+        raise ValueError(
+            f"hole_offset_mm has shape {array.shape}; the plate needs (rows, cols, 2) = {cells}: "
+            "one (x, y) displacement in mm per cell."
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError("hole_offset_mm holds NaN or infinite values; give finite (x, y) "
+                         "displacements in mm (0 for a hole where it was drawn).")
+    largest = float(np.linalg.norm(array, axis=-1).max())
+    limit = max(scene.plate.size_mm)
+    if largest > limit:
+        raise ValueError(
+            f"hole_offset_mm moves a hole by {largest:g} mm; allowed: up to the plate's size "
+            f"({limit:g} mm). Give displacements in mm, not microns."
+        )
+    return array
+
+
 class Renderer:
     """Renders views of one scene; caches its geometry. Differentiable in the open-area fractions
     and the display content.
 
     scene: the scene; device, dtype: where and how to compute; chunk_pairs: memory bound (pairs
     evaluated at once).
+    hole_offset_mm: (rows, cols, 2) float64 or None, lateral displacement (x right, y up; row 0
+        at +y) of each cell's hole from its cell centre, the same at both faces and for every
+        eye position (chief-ray axes keep the direction of the undisplaced hole). Offsets of
+        more than a pitch are handled: the hole search widens by the largest offset (cost grows
+        as its square), so no pair is lost; holes that come to overlap add their light (no
+        union). Offsets beyond the plate's size are rejected.
     """
 
     def __init__(
@@ -202,8 +232,10 @@ class Renderer:
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
         chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+        hole_offset_mm: np.ndarray | None = None,
     ) -> None:
         self.scene = scene
+        self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
         self.device = torch.device(device)
         self.dtype = dtype
         self.chunk_pairs = chunk_pairs
@@ -274,7 +306,13 @@ class Renderer:
             half = math.hypot(plate.size_mm[0] / 2 + abs(eye.positions_mm[0][0]),
                               plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
             tilt_room = t / 2 * half / self._axis_length
+        offsets = None
         reach = keep_within + tilt_room
+        if self.hole_offset_mm is not None:
+            # A displaced hole can come from a cell up to the largest offset farther away.
+            offsets = torch.as_tensor(self.hole_offset_mm.reshape(-1, 2), dtype=dt,
+                                      device=self.device)
+            reach += float(np.linalg.norm(self.hole_offset_mm, axis=-1).max())
         # The window may reach past the plate's edge (masked below); never clamp its size to
         # the plate, which would shift it off the holes on narrow plates.
         nsx = math.floor(2 * reach / px) + 2
@@ -297,9 +335,12 @@ class Renderer:
                 ax, ay = (ex - hx) / self._axis_length, (ey - hy) / self._axis_length
             else:
                 ax = ay = torch.zeros_like(hx)
+            keep = (rows >= 0) & (rows < ncy) & (cols >= 0) & (cols < ncx)
+            if offsets is not None:
+                shift = offsets[rows.clamp(0, ncy - 1) * ncx + cols.clamp(0, ncx - 1)]
+                hx, hy = hx + shift[..., 0], hy + shift[..., 1]
             bx, by = hx - t / 2 * ax, hy - t / 2 * ay  # bottom-face centre
             tx, ty = hx + t / 2 * ax, hy + t / 2 * ay  # top-face centre
-            keep = (rows >= 0) & (rows < ncy) & (cols >= 0) & (cols < ncx)
             keep &= (bx - fx) ** 2 + (by - fy) ** 2 < keep_within**2
             # Top-face disk mapped to the bottom face, for this view direction.
             m = opt.top_to_bottom

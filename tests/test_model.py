@@ -278,3 +278,128 @@ def test_narrow_plate_centre_hole_is_seen_centred():
     view = render(scene, a, np.ones((1, 40, 40)))[0]
     np.testing.assert_allclose(view, view[::-1, ::-1], atol=1e-12)
     assert view[5, 5] == pytest.approx(view.max(), rel=1e-9) and view.max() > 0
+
+
+# -- displaced holes ----------------------------------------------------------------------------
+
+
+def centroids(view: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel of a view (C, ny, nx): centroid (tan x, tan y) and total."""
+    vx, vy = scene.eye.view_directions()
+    total = view.sum((1, 2))
+    assert np.all(total > 0)
+    return (view.sum(1) * vx).sum(1) / total, (view.sum(2) * vy).sum(1) / total, total
+
+
+def render_offset(scene: Scene, a: np.ndarray, display: np.ndarray,
+                  offsets: np.ndarray | None = None) -> np.ndarray:
+    renderer = Renderer(scene, dtype=torch.float64, hole_offset_mm=offsets)
+    return renderer.render(torch.as_tensor(a), torch.as_tensor(display)).numpy()
+
+
+@pytest.mark.parametrize("offset", [(0.03, -0.02), (-0.6, 0.45)])
+@pytest.mark.parametrize("thickness, axis", [(0.0, "straight"), (0.3, "chief_ray")])
+@pytest.mark.usefixtures("one_torch_thread")
+def test_displaced_pinhole_moves_its_image(offset, thickness, axis):
+    """One hole displaced by d (x right, y up), also by more than a pitch: a display dot at x_d
+    appears at tan = (x_d - x_h - d) / (gap + t / 2), within 0.1 view pixel."""
+    cells, pixels, size = (40, 40), (400, 400), 10.0
+    fov = (math.degrees(2 * math.atan(0.08)),) * 2
+    row, col = 15, 26
+    a = np.zeros((cells[1], cells[0]))
+    a[row, col] = 0.05
+    scene = make_scene(cells=cells, thickness=thickness, axis=axis, pixels=pixels, size=size,
+                       view=(64, 64), fov=fov)
+    xs, ys = scene.plate.cell_centres_mm()
+    hx, hy = xs[col] + offset[0], ys[row] + offset[1]
+    h = scene.pinhole_height_mm
+    target_tan = (0.021, -0.013)
+    dx, dy = scene.display.pixel_centres_mm()
+    dcol = int(np.argmin(np.abs(dx - (hx + h * target_tan[0]))))
+    drow = int(np.argmin(np.abs(dy - (hy + h * target_tan[1]))))
+    display = np.zeros((1, *pixels))
+    display[0, drow, dcol] = 1.0
+    # The eye sees the displaced hole near target_tan; chief-ray axes aim at it.
+    s_b = scene.plate_distance_mm
+    eye = ((hx - target_tan[0] * s_b, hy - target_tan[1] * s_b),)
+    scene = make_scene(cells=cells, thickness=thickness, axis=axis, pixels=pixels, size=size,
+                       view=(64, 64), fov=fov, positions=eye)
+    offsets = np.zeros((cells[1], cells[0], 2))
+    offsets[row, col] = offset
+    view = render_offset(scene, a, display, offsets)
+    cx, cy, _ = centroids(view, scene)
+    step = scene.eye.view_step
+    assert abs(cx[0] - (dx[dcol] - hx) / h) < 0.1 * step[0]
+    assert abs(cy[0] - (dy[drow] - hy) / h) < 0.1 * step[1]
+    # The undisplaced hole shows the dot elsewhere or not at all: the test sees the offset.
+    assert np.abs(render_offset(scene, a, display) - view).sum() > 0.5 * view.sum()
+
+
+@pytest.mark.parametrize("axis", ["straight", "chief_ray"])
+def test_zero_offsets_give_bit_identical_views(axis):
+    rng = np.random.default_rng(4)
+    scene = make_scene(thickness=0.3, axis=axis, positions=((0.0, 0.0), (0.7, -0.3)))
+    a = torch.as_tensor(rng.uniform(0, 0.5, (12, 12)))
+    display = torch.as_tensor(rng.random((2, 60, 60)))
+    plain = Renderer(scene, dtype=torch.float64)
+    zero = Renderer(scene, dtype=torch.float64, hole_offset_mm=np.zeros((12, 12, 2)))
+    for position in (0, 1):
+        assert torch.equal(plain.render(a, display, position), zero.render(a, display, position))
+
+
+@pytest.mark.parametrize("offsets, message", [
+    (np.zeros((12, 12)), "shape"),
+    (np.zeros((12, 11, 2)), "shape"),
+    (np.full((12, 12, 2), np.nan), "NaN"),
+    (np.full((12, 12, 2), 4.0), "plate's size"),
+])
+def test_bad_hole_offsets_are_clear_errors(offsets, message):
+    with pytest.raises(ValueError, match=f"hole_offset_mm.*{message}"):
+        Renderer(make_scene(), hole_offset_mm=offsets)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_raised_hole_looks_like_its_lateral_equivalent():
+    """A hole raised by delta toward the eye (plate tilt) against the same hole at its height,
+    displaced by e = (x_h - c) delta / (s_h - delta) (its central projection from the eye):
+    a dot at the centre of what the hole shows lands within 0.1 view pixel, one a quarter of
+    the hole's visible range away within the first-order bound delta |v - v_chief| / h; on a
+    white display the light agrees within 1 % and its centroid within delta R / s_h^2 (R: pupil
+    radius; the edge of the range where the pupil sees the hole moves by delta |v - v_chief| /
+    s_h). Without e the first dot is more than a view pixel off."""
+    delta, gap, relief, pitch, thickness = 0.05, 10.0, 10.0, 0.25, 0.2
+    cells = (80, 9)
+    row, col = 4, 70
+    view = (600, 2)  # a strip: fine view pixels (0.0012 in tan) along x
+    fov = (math.degrees(2 * math.atan(0.36)), math.degrees(2 * math.atan(0.01)))
+    display = Display(24.0, 2.0, (960, 80))
+    xs, _ = Plate(cells, (pitch, pitch), gap, thickness).cell_centres_mm()
+    hx = xs[col]
+    s_h, h = relief + thickness / 2, gap + thickness / 2
+    v_chief = 0.3
+    eye_xy = (hx - v_chief * s_h, 0.0)
+
+    def scene(gap_mm: float, relief_mm: float) -> Scene:
+        return Scene(display, Plate(cells, (pitch, pitch), gap_mm, thickness),
+                     Eye(4.0, relief_mm, fov, view, None, (eye_xy,), (1.0,)))
+
+    raised, level = scene(gap + delta, relief - delta), scene(gap, relief)
+    a = np.zeros((cells[1], cells[0]))
+    a[row, col] = 0.3  # wide enough that the wall clips only the far end of its range
+    offsets = np.zeros((cells[1], cells[0], 2))
+    offsets[row, col, 0] = (hx - eye_xy[0]) * delta / (s_h - delta)
+    dx, _ = display.pixel_centres_mm()
+    dots = (v_chief, v_chief - 0.1)
+    content = np.zeros((3, 80, 960))
+    for k, v_dot in enumerate(dots):
+        content[k, 40, int(np.argmin(np.abs(dx - (hx + (h + delta) * v_dot))))] = 1.0
+    content[2] = 1.0
+    up_x, _, up_total = centroids(render_offset(raised, a, content), raised)
+    eq_x, _, eq_total = centroids(render_offset(level, a, content, offsets), level)
+    flat_x, _, _ = centroids(render_offset(level, a, content), level)
+    step = level.eye.view_step[0]
+    assert abs(up_x[0] - eq_x[0]) < 0.1 * step
+    assert abs(up_x[1] - eq_x[1]) < delta * abs(dots[1] - v_chief) / h + 0.1 * step
+    assert abs(up_x[2] - eq_x[2]) < delta * raised.eye.pupil_mm / 2 / s_h**2
+    assert eq_total[2] == pytest.approx(up_total[2], rel=0.01)
+    assert abs(up_x[0] - flat_x[0]) > step

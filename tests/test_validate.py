@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,9 +12,17 @@ import pytest
 from aperture_fab.cli import main
 from aperture_fab.images import encode_png
 from aperture_fab.layout import HoleLayout
+from aperture_fab.process import PROCESSES
 from aperture_fab.report import REPORT_VARIANTS, validate_report
 from aperture_fab.targets import digit
-from aperture_fab.validate import ValidationSettings, layout_fractions, validation_settings
+from aperture_fab.validate import (
+    MAX_TILT_SIGMA_DEG,
+    ValidationSettings,
+    _tilt_offsets_mm,
+    layout_fractions,
+    tolerance_analysis,
+    validation_settings,
+)
 
 
 def test_layout_fractions_place_each_hole_in_its_cell():
@@ -34,6 +43,10 @@ def test_layout_fractions_place_each_hole_in_its_cell():
 def test_validation_settings_are_checked():
     with pytest.raises(ValueError, match="tolerance_samples"):
         ValidationSettings(tolerance_samples=-1)
+    for tilt in (-0.1, MAX_TILT_SIGMA_DEG + 0.1, math.nan, math.inf):
+        with pytest.raises(ValueError, match="tilt_sigma_deg"):
+            ValidationSettings(tilt_sigma_deg=tilt)
+    assert validation_settings({"validation": {"tilt_sigma_deg": 1.5}}).tilt_sigma_deg == 1.5
     with pytest.raises(ValueError, match="unknown keys"):
         validation_settings({"validation": {"samples": 3}})
     assert validation_settings({}, {"mesh_samples": 8, "tolerance_samples": None}).mesh_samples == 8
@@ -120,3 +133,147 @@ def test_the_display_written_is_fitted_to_the_part(validated):
     with np.load(validated / "design.npz") as design:
         assert design["built_displays"].shape == design["displays"].shape
         assert not np.allclose(design["built_displays"], design["displays"])
+
+
+# -- tolerance analysis ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def fitted_part():
+    """A 16 x 16 plate of equal holes in 40 % of the cells and display content fitted to it:
+    content that depends on where each hole is, as a design's does."""
+    import torch
+    from conftest import tiny_config
+
+    from aperture_fab.optimize import fit_display
+    from aperture_fab.pipeline import _prepare
+
+    config = tiny_config(**{"optimizer.precision": "float64"})
+    scene = config.scene
+    targets, shown = _prepare(config, [digit("3")])
+    rng = np.random.default_rng(0)
+    rows, cols = np.nonzero(rng.random((16, 16)) < 0.4)
+    xs, ys = scene.plate.cell_centres_mm()
+    layout = HoleLayout(
+        cells=np.stack([rows, cols], 1), centres_mm=np.stack([xs[cols], ys[rows]], 1),
+        radii_mm=np.full(len(rows), 0.06), axes=np.zeros((len(rows), 2)),
+        pitch_mm=scene.plate.pitch_mm, grid=(16, 16), outline_mm=scene.plate.size_mm,
+        thickness_mm=scene.plate.thickness_mm,
+    )
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fitted, _ = fit_display(scene, targets, layout_fractions(layout), shown,
+                                config.optimizer, 30)
+    finally:
+        torch.set_num_threads(threads)
+    return config, targets, fitted, layout
+
+
+def run_tolerance(fitted_part, position_sigma_mm=0.0, radius_bias_mm=0.0, **settings):
+    import torch
+
+    config, targets, fitted, layout = fitted_part
+    process = replace(PROCESSES["photomask"], radius_bias_mm=radius_bias_mm,
+                      radius_sigma_mm=0.0, position_sigma_mm=position_sigma_mm)
+    values = {"tolerance_samples": 8, "gap_sigma_mm": 0.0, "eye_sigma_mm": 0.0,
+              "tilt_sigma_deg": 0.0, "seed": 3, **settings}
+    return tolerance_analysis(config, targets, [torch.as_tensor(d) for d in fitted], layout,
+                              process, ValidationSettings(**values), 10.0, torch.device("cpu"),
+                              torch.float64)
+
+
+def nominal_psnr(fitted_part, radius_bias_mm=0.0):
+    import torch
+
+    from aperture_fab.model import Renderer
+    from aperture_fab.optimize import gain_mse, psnr_db
+
+    config, targets, fitted, layout = fitted_part
+    renderer = Renderer(config.scene, dtype=torch.float64)
+    view = renderer.render(torch.as_tensor(layout_fractions(layout, radius_bias_mm)),
+                           torch.as_tensor(fitted[0]))
+    return psnr_db(float(gain_mse(view, torch.as_tensor(targets[0]))))
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_tolerance_without_errors_is_the_nominal_part(fitted_part):
+    """Every sigma 0: every sample is the as-built part (process bias applied)."""
+    result = run_tolerance(fitted_part, radius_bias_mm=-0.01)
+    nominal = nominal_psnr(fitted_part, -0.01)
+    assert nominal != pytest.approx(nominal_psnr(fitted_part), abs=0.01)  # the bias matters
+    np.testing.assert_allclose(result["psnr_db"], nominal, rtol=1e-9)
+    assert result["position_sigma_mm"] == 0.0 and result["tilt_sigma_deg"] == 0.0
+    assert not {"hole position error", "plate tilt"} & set(result["not_modelled"])
+    assert {"samples", "psnr_db", "psnr_percentiles", "threshold_db", "yield", "radius_bias_mm",
+            "radius_sigma_mm", "gap_sigma_mm", "eye_sigma_mm"} <= set(result)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_hole_position_error_lowers_the_psnr(fitted_part):
+    """Holes misplaced by 0.05 and 0.1 mm (1 sigma, each axis; pitch 0.25 mm) show the fitted
+    content from the wrong places: the median falls by more than 0.3 and 0.8 dB, every sample
+    is worse, and more error is worse."""
+    nominal = nominal_psnr(fitted_part)
+    some = run_tolerance(fitted_part, position_sigma_mm=0.05)
+    more = run_tolerance(fitted_part, position_sigma_mm=0.1)
+    assert some["position_sigma_mm"] == 0.05
+    assert max(some["psnr_db"]) < nominal and max(more["psnr_db"]) < nominal
+    assert some["psnr_percentiles"]["50"] < nominal - 0.3
+    assert more["psnr_percentiles"]["50"] < some["psnr_percentiles"]["50"] - 0.3
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_plate_tilt_lowers_the_psnr(fitted_part):
+    """No tilt: the nominal part. Tilt (2 and 5 deg, 1 sigma): every sample worse, and more tilt
+    is worse. (The effect is small on this 4 mm plate: a hole 2 mm off the eye's axis moves by
+    at most about 0.07 mm at 5 deg, and smoothly, like its neighbours.)"""
+    nominal = nominal_psnr(fitted_part)
+    level = run_tolerance(fitted_part, tilt_sigma_deg=0.0)
+    some = run_tolerance(fitted_part, tilt_sigma_deg=2.0)
+    more = run_tolerance(fitted_part, tilt_sigma_deg=MAX_TILT_SIGMA_DEG)
+    np.testing.assert_allclose(level["psnr_db"], nominal, rtol=1e-9)
+    assert some["tilt_sigma_deg"] == 2.0
+    assert max(some["psnr_db"]) < nominal and max(more["psnr_db"]) < nominal
+    assert more["psnr_percentiles"]["50"] < some["psnr_percentiles"]["50"] < nominal - 0.01
+
+
+@pytest.mark.parametrize("tilt_deg, axis_deg, eye", [(3.0, 30.0, (0.0, 0.0)),
+                                                     (-1.0, 200.0, (0.8, -0.5))])
+def test_tilt_offsets_are_the_tilted_holes_seen_from_the_eye(tilt_deg, axis_deg, eye):
+    """Against an independent construction: the plate rotated with scipy about its in-plane
+    axis, each hole projected from the eye onto the untilted mid-plane; and, to first order,
+    the lateral shift delta (p - c) / s_h along the chief ray."""
+    from scipy.spatial.transform import Rotation
+
+    from aperture_fab.config import resolve
+
+    scene = resolve("near-eye", overrides={"plate.cells": [80, 60]}).scene
+    tilt, axis = math.radians(tilt_deg), math.radians(axis_deg)
+    offsets = _tilt_offsets_mm(scene, eye, tilt, axis)
+    xs, ys = scene.plate.cell_centres_mm()
+    x, y = np.meshgrid(xs, ys)
+    points = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    turned = Rotation.from_rotvec(tilt * np.array([math.cos(axis), math.sin(axis), 0.0])
+                                  ).apply(points)
+    s_h = scene.eye.eye_relief_mm + scene.plate.thickness_mm / 2
+    pupil = np.array([eye[0], eye[1], s_h])
+    along = s_h / (s_h - turned[:, 2])  # eye-to-hole line reaching the plane z = 0
+    seen = pupil[:2] + along[:, None] * (turned[:, :2] - pupil[:2])
+    np.testing.assert_allclose(offsets.reshape(-1, 2), seen - points[:, :2], atol=1e-12)
+    # First order: the exact shift is this times s_h / (s_h - delta), plus the in-plane
+    # (1 - cos tilt) d pull toward the axis.
+    delta = turned[:, 2:]
+    first_order = delta * (points[:, :2] - pupil[:2]) / s_h
+    d = np.hypot(*(turned[:, :2] - points[:, :2]).T)[:, None] / (1 - math.cos(tilt))
+    bound = np.abs(first_order) * 2 * np.abs(delta) / s_h + (1 - math.cos(tilt)) * d + 1e-12
+    assert np.all(np.abs(offsets.reshape(-1, 2) - first_order) <= bound)
+    assert np.abs(offsets).max() > 0.1
+
+
+def test_a_tilt_into_the_eye_is_an_error():
+    from aperture_fab.config import resolve
+
+    scene = resolve("near-eye", overrides={"eye.eye_relief_mm": 5.0}).scene
+    with pytest.raises(ValueError, match="tilt_sigma_deg"):
+        _tilt_offsets_mm(scene, (0.0, 0.0), math.radians(60.0), 0.0)
