@@ -235,6 +235,92 @@ def _cmd_design(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from aperture_fab.recheck import run_validate
+
+    result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
+                          process=args.process, keep_display=args.keep_display,
+                          tolerance_samples=args.tolerance_samples,
+                          mesh_samples=args.mesh_samples, progress=not args.quiet)
+    metrics = result.validation.metrics
+    layout = result.part.layout
+    print(f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "
+          f"display content {result.display_source})")
+    print("PSNR after gain (dB), nominal eye position:")
+    print(f"  {'variant':<22}" + "".join(f"{name:>16}" for name in result.names))
+    for variant, per_target in metrics.items():
+        print(f"  {variant:<22}" + "".join(f"{per_target[name]['psnr_db']:>16.2f}"
+                                           for name in result.names))
+    if layout.violations:
+        print(f"{len(layout.violations)} process rule violation(s):")
+        for v in layout.violations[:10]:
+            print(f"  {v.rule}" + ("" if v.cell is None else f" cell {v.cell}")
+                  + f": {v.resolution}")
+    return 0
+
+
+def _pair_mm(text: str, flag: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{flag} {text!r}: give two numbers in mm as X,Y, e.g. 1.5,-0.5.") \
+            from None
+    return (x, y)
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from aperture_fab.recheck import run_render
+
+    focus: Any = None
+    if args.focus is not None:
+        focus = "infinity" if args.focus == "infinity" else _focus_mm(args.focus)
+    rendered = run_render(
+        args.part, config_path=args.config, target=args.target, target_index=args.target_index,
+        eye_mm=None if args.eye is None else _pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
+        focus_mm=focus, mesh=args.mesh, mesh_samples=args.mesh_samples, process=args.process,
+        out=args.out)
+    x, y = rendered.eye_mm
+    quality = "" if rendered.psnr_db is None else f"PSNR {rendered.psnr_db:.2f} dB after gain, "
+    print(f"wrote {rendered.path}: eye at ({x:g}, {y:g}) mm, {quality}"
+          f"light efficiency {rendered.light_efficiency:.3g}")
+    return 0
+
+
+def _focus_mm(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--focus {text!r}: give a distance in mm or 'infinity'.") from None
+
+
+VALIDATE_EPILOG = """\
+examples:
+  aperture-fab validate outputs/x/holes.csv examples/targets/natural.png
+  aperture-fab validate edited.stl a.png --config outputs/x/design.toml --out outputs/check
+  aperture-fab validate outputs/x/design.npz a.png --process etched-foil
+
+PART is a design.npz (quantized and built for the process, like `export`), a holes.csv or an
+STL, perhaps edited by hand: holes that break the process's rules are validated anyway and
+the broken rules listed. The display content is re-fitted to the part (the display is
+software), from design.npz beside the config when there is one; --keep-display shows
+design.npz's content unchanged. Outputs: report.json, report.html, views.npz and
+display_<target>.png (the content to show with this part).
+"""
+
+RENDER_EPILOG = """\
+examples:
+  aperture-fab render outputs/x/plate.stl --eye 1.5,0 --out view.png
+  aperture-fab render outputs/x/holes.csv examples/targets/natural.png --focus 500
+  aperture-fab render outputs/x/design.npz --target-index 1 --mesh
+
+The view uses the design's display content (design.npz beside the config), or the TARGET
+itself when the config shows targets. Without --mesh the exact model with the holes as made
+(the process's radius bias applied); with --mesh a ray trace of the part's mesh. The PNG is
+scaled by the view's least-squares gain to TARGET when one is given, else so that its
+99.5th percentile is white.
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="aperture-fab", description=DESCRIPTION,
@@ -276,6 +362,55 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_fabrication_flags(p)
     p.set_defaults(func=_cmd_export)
+
+    p = sub.add_parser("validate", help="validate a part, perhaps edited by hand",
+                       description="Validate a design.npz, holes.csv or STL for a config and "
+                       "target images, and write the report.", epilog=VALIDATE_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("part", type=Path, metavar="PART",
+                   help="design.npz, holes.csv or an STL (.stl)")
+    p.add_argument("targets", nargs="+", type=Path, metavar="TARGET",
+                   help="target images, one per design display, in the design's order")
+    p.add_argument("--config", type=Path, metavar="FILE.toml",
+                   help="the design's config (default: design.toml beside PART)")
+    p.add_argument("--out", type=Path, metavar="FOLDER",
+                   help="output folder (default: validate_<PART stem> beside PART)")
+    p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
+    p.add_argument("--keep-display", action="store_true",
+                   help="show design.npz's display content unchanged (default: re-fit it to "
+                   "the part)")
+    p.add_argument("--tolerance-samples", type=int, metavar="N",
+                   help="Monte Carlo samples of the tolerance analysis (0 skips it)")
+    p.add_argument("--mesh-samples", type=int, metavar="N",
+                   help="rays per view pixel when re-tracing the mesh (0 skips it)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("render", help="the view through a part for an eye position",
+                       description="Render what the eye sees through a design.npz, holes.csv "
+                       "or STL with the design's display content, as an sRGB PNG.",
+                       epilog=RENDER_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("part", type=Path, metavar="PART",
+                   help="design.npz, holes.csv or an STL (.stl)")
+    p.add_argument("target", nargs="?", type=Path, metavar="TARGET",
+                   help="target image: scales the PNG by the view's gain and reports the PSNR")
+    p.add_argument("--config", type=Path, metavar="FILE.toml",
+                   help="the design's config (default: design.toml beside PART)")
+    p.add_argument("--target-index", type=int, default=0, metavar="N",
+                   help="which of the design's display contents to show (default 0)")
+    p.add_argument("--eye", metavar="X,Y", help="lateral eye position in mm (default: the "
+                   "config's nominal one); may lie outside the config's eyebox")
+    p.add_argument("--pupil", type=float, metavar="MM", help="pupil diameter in mm")
+    p.add_argument("--focus", metavar="MM", help="eye focus distance in mm, or 'infinity'")
+    p.add_argument("--mesh", action="store_true",
+                   help="ray-trace the part's mesh instead of the exact hole model")
+    p.add_argument("--mesh-samples", type=int, default=256, metavar="N",
+                   help="rays per view pixel with --mesh (default 256)")
+    p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
+    p.add_argument("--out", type=Path, metavar="VIEW.png",
+                   help="PNG to write (default: view_<PART stem>.png beside PART)")
+    p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("presets", help="list the presets with their key numbers")
     p.set_defaults(func=_cmd_presets)

@@ -8,8 +8,10 @@ position for a tilted hole (it is off by at most thickness / 2 * |axis| at eithe
 
 from __future__ import annotations
 
+import csv
 import io
 import itertools
+import math
 import zipfile
 from collections.abc import Iterator
 from typing import Literal
@@ -18,11 +20,13 @@ import numpy as np
 
 from aperture_fab.layout import HoleLayout
 from aperture_fab.mesh import PlateMesh, outline_points_mm
+from aperture_fab.scene import Plate
 
 __all__ = [
     "Polarity",
     "dxf_bytes",
     "holes_csv",
+    "read_holes_csv",
     "read_stl",
     "stl_bytes",
     "svg_text",
@@ -197,6 +201,106 @@ def holes_csv(layout: HoleLayout) -> str:
     axis = f"%.{AXIS_DECIMALS}f"
     lines.append(_rows_text(table, f"%d,%d,{mm},{mm},{mm},{axis},{axis}\n"))
     return "".join(lines)
+
+
+HOLES_CSV_COLUMNS = ("row", "col", "x_mm", "y_mm", "radius_mm", "axis_x", "axis_y")
+#: How far (per mm of z) a hole table's axes may differ from (E_xy - centres) / D and still be
+#: read as convergent: the table rounds centres to 1 nm and axes to 1e-9, far inside this.
+CSV_CONVERGE_AXIS_TOL = 1e-6
+
+
+def _csv_number(text: str, column: str, where: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: {column} = {text!r} is not a number; write a decimal "
+                         "number, e.g. 0.125.") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: {column} = {text!r}; allowed: a finite number.")
+    return value
+
+
+def _csv_index(text: str, column: str, count: int, where: str) -> int:
+    value = _csv_number(text, column, where)
+    if not (value.is_integer() and 0 <= value < count):
+        raise ValueError(f"{where}: {column} = {text!r}; allowed: a whole number from 0 to "
+                         f"{count - 1} (the plate's grid has {count} {column}s).")
+    return int(value)
+
+
+def read_holes_csv(
+    text: str,
+    plate: Plate,
+    *,
+    outline_mm: tuple[float, float],
+    converge_mm: tuple[float, float, float] | None = None,
+    source: str = "holes.csv",
+) -> HoleLayout:
+    """The hole table that holes_csv writes, read back as a HoleLayout on `plate`'s grid
+    (pitch, cell count, thickness); the inverse of holes_csv, also for tables edited by hand.
+
+    The table holds neither the outline nor the point chief-ray holes aim at, so they are given:
+    outline_mm (width, height) of the plate and converge_mm (ex, ey, D) (HoleLayout). When every
+    axis is within CSV_CONVERGE_AXIS_TOL of (E_xy - centres) / D, the axes are set exactly to
+    that (the table rounds them) and the layout keeps converge_mm; otherwise it gets the table's
+    axes and converge_mm None. A hole is closed by deleting its line or setting its radius to 0.
+    Columns may come in any order; blank lines are skipped. source names the table in errors.
+    """
+    rows = [r for r in csv.reader(io.StringIO(text)) if any(field.strip() for field in r)]
+    if not rows:
+        raise ValueError(f"{source} is empty; a hole table starts with the header "
+                         f"{','.join(HOLES_CSV_COLUMNS)}.")
+    header = [name.strip().lower() for name in rows[0]]
+    if sorted(header) != sorted(HOLES_CSV_COLUMNS):
+        raise ValueError(f"{source}: the header is {','.join(rows[0])!r}; a hole table has the "
+                         f"columns {','.join(HOLES_CSV_COLUMNS)} (any order), as holes_csv "
+                         "writes them.")
+    index = {name: header.index(name) for name in HOLES_CSV_COLUMNS}
+    nx, ny = plate.cells
+    seen: dict[tuple[int, int], int] = {}
+    cells, centres, radii, axes = [], [], [], []
+    for number, fields in enumerate(rows[1:], start=2):
+        where = f"{source} line {number}"
+        if len(fields) != len(HOLES_CSV_COLUMNS):
+            raise ValueError(f"{where} has {len(fields)} fields; every line needs "
+                             f"{len(HOLES_CSV_COLUMNS)} ({','.join(HOLES_CSV_COLUMNS)}).")
+        row = _csv_index(fields[index["row"]], "row", ny, where)
+        col = _csv_index(fields[index["col"]], "col", nx, where)
+        x, y, radius, ax, ay = (_csv_number(fields[index[name]], name, where)
+                                for name in HOLES_CSV_COLUMNS[2:])
+        if radius < 0:
+            raise ValueError(f"{where}: radius_mm = {radius:g}; allowed: >= 0 (0 closes the "
+                             "hole).")
+        if (row, col) in seen:
+            raise ValueError(f"{where}: cell ({row}, {col}) is listed again (first on line "
+                             f"{seen[row, col]}); give each cell at most one hole.")
+        seen[row, col] = number
+        if radius == 0:
+            continue
+        cells.append((row, col))
+        centres.append((x, y))
+        radii.append(radius)
+        axes.append((ax, ay))
+    centres_mm = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    axes_mm = np.asarray(axes, dtype=np.float64).reshape(-1, 2)
+    if converge_mm is not None:
+        ex, ey, distance = converge_mm
+        want = (np.array([ex, ey]) - centres_mm) / distance
+        if len(want) and float(np.max(np.abs(axes_mm - want))) > CSV_CONVERGE_AXIS_TOL:
+            converge_mm = None  # edited axes: keep them as written
+        else:
+            axes_mm = want
+    return HoleLayout(
+        cells=np.asarray(cells, dtype=np.int64).reshape(-1, 2),
+        centres_mm=centres_mm,
+        radii_mm=np.asarray(radii, dtype=np.float64),
+        axes=axes_mm,
+        pitch_mm=plate.pitch_mm,
+        grid=plate.cells,
+        outline_mm=outline_mm,
+        thickness_mm=plate.thickness_mm,
+        converge_mm=converge_mm,
+    )
 
 
 def dxf_bytes(layout: HoleLayout, corner_cut_mm: float = 0.0) -> bytes:

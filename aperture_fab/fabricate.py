@@ -25,6 +25,7 @@ __all__ = [
     "Part",
     "FabricationSettings",
     "fabrication_settings",
+    "build_part",
     "design_bounds",
     "drawn_fractions",
     "eye_distance_mm",
@@ -145,17 +146,25 @@ def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSett
     layout = quantize(drawn_fractions(open_fraction, plate, process), plate, process,
                       tilt_target_mm=eye.positions_mm[0], eye_distance_mm=eye_distance_mm(scene),
                       force=settings.force)
-    margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
-    cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0
-    chord = min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * process.radius_sigma_mm))
     web = 0.0 if settings.force else process.min_web_for(plate.thickness_mm)
-    mesh = build_mesh(layout, chord, min_web_mm=web, corner_cut_mm=cut)
-    report = check_mesh(mesh)
+    part = build_part(layout, settings, web)
+    report = part.report
     if not (report.watertight and report.consistently_oriented and report.bodies == 1
             and report.genus == layout.count):
         raise RuntimeError(f"the built plate failed its own checks ({report}); this is a bug, "
                            "please report it with the design.")
-    return Part(layout, mesh, report, cut)
+    return part
+
+
+def build_part(layout: HoleLayout, settings: FabricationSettings, min_web_mm: float) -> Part:
+    """The solid for a layout as it is (checked, not judged): polygons fine enough for the
+    process's radius tolerance, the alignment chamfer, webs of at least min_web_mm."""
+    margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
+    cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0
+    sigma = settings.process.radius_sigma_mm
+    chord = min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * sigma))
+    mesh = build_mesh(layout, chord, min_web_mm=min_web_mm, corner_cut_mm=cut)
+    return Part(layout, mesh, check_mesh(mesh), cut)
 
 
 def part_files(part: Part, formats: tuple[PartFormat, ...], settings: FabricationSettings,

@@ -129,10 +129,15 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
     assert history[-1] < history[0]
 
 
-def test_the_display_written_is_fitted_to_the_part(validated):
+def test_the_plate_written_is_the_plate_the_display_was_optimized_for(validated):
+    """The last iterations saw the holes as made, so the display content written is fitted to
+    the part, and the part's holes are the design's (photomask: no radius bias)."""
+    report = json.loads((validated / "report.json").read_text())
     with np.load(validated / "design.npz") as design:
-        assert design["built_displays"].shape == design["displays"].shape
-        assert not np.allclose(design["built_displays"], design["displays"])
+        np.testing.assert_array_equal(design["built_displays"], design["displays"])
+        a = design["open_fraction"]
+    holes = np.loadtxt(validated / "holes.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert len(holes) == np.count_nonzero(a) == report["fabrication"]["holes"]
 
 
 # -- tolerance analysis ---------------------------------------------------------------------------
