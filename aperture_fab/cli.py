@@ -142,7 +142,8 @@ def _add_validation_flags(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--tolerance-samples", type=int, metavar="N",
                        help="Monte Carlo samples of the tolerance analysis (0 skips it)")
     group.add_argument("--mesh-samples", type=int, metavar="N",
-                       help="rays per view pixel when re-tracing the written mesh (0 skips it)")
+                       help="rays per (view pixel, hole) pair when re-tracing the written mesh "
+                       "(default 12; 0 skips it)")
 
 
 def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
@@ -382,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tolerance-samples", type=int, metavar="N",
                    help="Monte Carlo samples of the tolerance analysis (0 skips it)")
     p.add_argument("--mesh-samples", type=int, metavar="N",
-                   help="rays per view pixel when re-tracing the mesh (0 skips it)")
+                   help="rays per (view pixel, hole) pair when re-tracing the mesh (0 skips it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_validate)
 
@@ -405,8 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--focus", metavar="MM", help="eye focus distance in mm, or 'infinity'")
     p.add_argument("--mesh", action="store_true",
                    help="ray-trace the part's mesh instead of the exact hole model")
-    p.add_argument("--mesh-samples", type=int, default=256, metavar="N",
-                   help="rays per view pixel with --mesh (default 256)")
+    p.add_argument("--mesh-samples", type=int, default=None, metavar="N",
+                   help="rays per (view pixel, hole) pair with --mesh (default 12)")
     p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
     p.add_argument("--out", type=Path, metavar="VIEW.png",
                    help="PNG to write (default: view_<PART stem>.png beside PART)")

@@ -38,9 +38,8 @@ __all__ = [
 COSINE_FLOOR = 0.05
 #: Initial logit span: closed cells start at this share of the allowed range, so they can open.
 INIT_CLOSED_SHARE = 0.02
-#: Share of the snapped iterations over which cells are snapped progressively; the rest see
-#: every cell snapped.
-PROGRESSIVE_SHARE = 0.6
+#: Share of the snapped iterations after which only the display content moves.
+FROZEN_PLATE_START = 0.5
 #: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
 EFFICIENCY_PUPIL_SAMPLES = 32
 
@@ -139,13 +138,9 @@ def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.T
     return state
 
 
-def _snapped(a: torch.Tensor, made: MadeSizes, share: float) -> torch.Tensor:
+def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
     """The nearest makeable fraction forward, the identity backward (straight through), so
-    the loss sees the holes the process makes and the gradient still moves every cell.
-
-    share: the share of cells snapped, those nearest a makeable size first; the others stay
-    continuous and can make up for them (progressive quantization; 1 snaps all).
-    """
+    the loss sees the holes the process makes and the gradient still moves every cell."""
     with torch.no_grad():
         if made.levels is None:
             snap = torch.where(a < made.lo / 2, torch.zeros_like(a), a.clamp(made.lo, made.hi))
@@ -154,13 +149,7 @@ def _snapped(a: torch.Tensor, made: MadeSizes, share: float) -> torch.Tensor:
             index = torch.searchsorted(levels, a.contiguous()).clamp(1, len(levels) - 1)
             below, above = levels[index - 1], levels[index]
             snap = torch.where(a - below <= above - a, below, above)
-        step = snap - a
-        if share < 1:
-            distance = step.abs().reshape(-1)
-            count = max(1, math.ceil(share * distance.numel()))
-            step = torch.where(step.abs() <= distance.kthvalue(count).values, step,
-                               torch.zeros_like(step))
-    return a + step
+    return a + (snap - a).detach()
 
 
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
@@ -277,8 +266,7 @@ def optimize(
     def plate(iteration: int) -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
         if made is not None and iteration >= state["snap_from"]:
-            ramp = PROGRESSIVE_SHARE * (settings.iterations - state["snap_from"])
-            return _snapped(a, made, (iteration - state["snap_from"] + 1) / max(ramp, 1))
+            return _snapped(a, made)
         return a
 
     def loss_fn(iteration: int) -> torch.Tensor:
@@ -332,6 +320,9 @@ def optimize(
                     f"(now {settings.learning_rate}) or use precision float64."
                 )
             (loss * scale).backward()
+            if made is not None and display_param is not None and iteration >= state[
+                    "snap_from"] + FROZEN_PLATE_START * (settings.iterations - state["snap_from"]):
+                mask_logits.grad = None  # the plate is settled: fit the display to it
             opt.step()
             if display_param is not None:
                 with torch.no_grad():

@@ -44,7 +44,7 @@ from aperture_fab.optimize import (
 )
 from aperture_fab.process import check_plate
 from aperture_fab.quantize import made_sizes
-from aperture_fab.validate import ValidationSettings, layout_fractions, validate
+from aperture_fab.validate import Validation, ValidationSettings, layout_fractions, validate
 
 __all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
 
@@ -64,10 +64,12 @@ class DesignResult:
     targets: (T, C, ny, nx) float64 linear targets on the view grid.
     views: {"initial" | "optimized" | "open" | "regular_pinholes": (T, P, C, ny, nx) float64}
         for every target and eyebox position.
-    metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position.
+    metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position;
+        run_design adds "quantized" and "as_built" when it validates the part.
     part: the part as made (None when no fabrication settings were given).
-    built_displays: (T, C, H, W) display content re-fitted to the part as built (None when the
-        display shows the targets, or without a part): what the device should show.
+    built_displays: (T, C, H, W) display content fitted to the part as made: optimized with the
+        snapped plate, or re-fitted to the part when no iteration saw it (None when the display
+        shows the targets, or without a part): what the device should show.
     timings_s: seconds per stage.
     """
 
@@ -303,13 +305,17 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         write_part(folder, result.part, fabrication, _formats(out, fabrication), progress)
         result.timings_s["export_s"] = time.perf_counter() - start
         if validation is not None:
-            write_report(folder, result, fabrication, validation)
+            checked = write_report(folder, result, fabrication, validation)
+            for variant in ("quantized", "as_built"):
+                per_target = [checked.metrics[variant][name] for name in result.names]
+                result.metrics[variant] = {key: [m[key] for m in per_target]
+                                           for key in ("mse", "psnr_db")}
     checkpoint.unlink(missing_ok=True)
     return result
 
 
 def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
-                 settings: ValidationSettings) -> None:
+                 settings: ValidationSettings) -> Validation:
     """Validate the part as written (plate.stl re-read from disk) and write report.json,
     views.npz and report.html."""
     from aperture_fab.evidence import assemble
@@ -332,6 +338,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     write_atomic(folder / "views.npz", evidence.views_npz)
     write_atomic(folder / "report.html", evidence.html)
     write_atomic(folder / "report.json", report_json(evidence.report))
+    return checked
 
 
 def _formats(out: Path, fabrication: FabricationSettings) -> tuple[PartFormat, ...]:

@@ -425,7 +425,7 @@ def run_render(
     pupil_mm: float | None = None,
     focus_mm: float | Literal["infinity"] | None = None,
     mesh: bool = False,
-    mesh_samples: int = 256,
+    mesh_samples: int | None = None,
     process: str | None = None,
     out: Path | None = None,
 ) -> RenderedView:
@@ -436,7 +436,8 @@ def run_render(
     or the target itself when the config shows targets (optimizer.display = "target").
     eye_mm: lateral eye position (default the config's nominal one); pupil_mm, focus_mm
     override the config's eye. mesh: trace the part's mesh (Monte Carlo, mesh_samples rays
-    per pixel) instead of the exact model with the holes as made (radius bias applied).
+    per (view pixel, hole) pair, default retrace.DEFAULT_SAMPLES) instead of the exact model
+    with the holes as made (radius bias applied).
     The PNG is the view times its least-squares gain to the target when one is given, else
     scaled so that its RENDER_PERCENTILE-th percentile is 1. out: default view_<part stem>.png
     beside the part.

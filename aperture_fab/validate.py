@@ -60,6 +60,7 @@ from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.model import Renderer, render_open
 from aperture_fab.optimize import gain_mse, psnr_db, resolve_device
 from aperture_fab.process import Process
+from aperture_fab.retrace import DEFAULT_SAMPLES
 from aperture_fab.scene import Eye, Plate, Scene
 
 __all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
@@ -86,7 +87,8 @@ class ValidationSettings:
         supports 20 mm apart whose heights each err by the gap sigma (0.1 mm) differ by
         0.14 mm, 0.4 deg.
     eye_sigma_mm: eye position error across the eyebox (1 sigma, each axis).
-    mesh_samples: rays per view pixel for the mesh re-trace (0 skips it).
+    mesh_samples: rays per (view pixel, hole) pair for the mesh re-trace (0 skips it; the
+        default gives about 38 dB against the exact view on the near-eye preset).
     diffraction: render the diffraction-aware view.
     seed: random seed (random mask, tolerance samples, ray sampling).
     """
@@ -96,7 +98,7 @@ class ValidationSettings:
     gap_sigma_mm: float = 0.1
     eye_sigma_mm: float = 1.0
     tilt_sigma_deg: float = 0.5
-    mesh_samples: int = 256
+    mesh_samples: int = DEFAULT_SAMPLES["holes"]
     diffraction: bool = True
     seed: int = 0
 

@@ -75,18 +75,11 @@ def test_snapped_is_the_snap_forward_and_the_identity_backward() -> None:
     made = MadeSizes(np.array([0.0, 0.1, 0.2, 0.4]), 0.1, 0.4)
     a = torch.tensor([0.02, 0.08, 0.16, 0.33, 0.5], dtype=torch.float64, requires_grad=True)
     weights = torch.arange(1.0, 6.0, dtype=torch.float64)
-    out = _snapped(a, made, 1.0)
+    out = _snapped(a, made)
     np.testing.assert_array_equal(out.detach().numpy(), made.snap(a.detach().numpy()))
     (out * weights).sum().backward()
     assert a.grad is not None
     np.testing.assert_array_equal(a.grad.numpy(), weights.numpy())
-
-
-def test_progressive_snapping_snaps_the_nearest_cells_first() -> None:
-    made = MadeSizes(np.array([0.0, 0.1, 0.2]), 0.1, 0.2)
-    a = torch.tensor([0.101, 0.15, 0.19, 0.05], dtype=torch.float64)
-    out = _snapped(a, made, 0.5).numpy()
-    np.testing.assert_allclose(out, [0.1, 0.15, 0.2, 0.05])  # distances .001 .05 .01 .05
 
 
 @settings(max_examples=10, deadline=None)
