@@ -122,10 +122,25 @@ def test_bench_quality_quick(bench_quality: ModuleType, tmp_path: Path) -> None:
     assert figures["preset"] == "near-eye" and figures["iterations"] == 2
     assert set(figures["targets"]) == {"digit-3"}
     result = figures["targets"]["digit-3"]
-    assert set(result["psnr_db"]) == {"open", "regular_pinholes", "initial", "optimized"}
+    assert set(result["psnr_db"]) == {"open", "regular_pinholes", "initial", "optimized",
+                                      "as_built"}
     assert all(_positive(v) for v in result["psnr_db"].values())
     assert result["iterations_run"] == 2 and _positive(result["seconds"])
     psnr = result["psnr_db"]
-    assert result["beats_baselines"] == (psnr["optimized"] > max(psnr["open"],
-                                                                 psnr["regular_pinholes"]))
+    assert result["loss_db"] == pytest.approx(psnr["optimized"] - psnr["as_built"])
+    assert result["beats_baselines"] == (psnr["as_built"] > max(psnr["open"],
+                                                                psnr["regular_pinholes"]))
     assert _positive(result["final_loss"])
+
+
+@pytest.mark.slow
+def test_bench_end_to_end_quick(tmp_path: Path) -> None:
+    bench = _load("bench_end_to_end")
+    out = tmp_path / "e2e.json"
+    figures = bench.main(["--preset", "seed", "--iterations", "2", "--target", "digit-3",
+                          "--json", str(out)])
+    assert json.loads(out.read_text()) == figures
+    stages = figures["median_stages_s"]
+    for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
+        assert stage in stages and stages[stage] >= 0, stage
+    assert figures["median_wall_s"] >= sum(stages.values())  # the stages run one after another
