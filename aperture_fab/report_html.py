@@ -94,11 +94,12 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
         if efficiency is not None:
             lines.append(f"The eye sees {100 * efficiency:.2g} % of the light of the open "
                          "display.")
-    built, traced = _mean(report, "as_built"), _mean(report, "as_built_mesh")
-    if built is not None and traced is not None:
+    built = _mean(report, "as_built")
+    drawn, traced = _mean(report, "quantized"), _mean(report, "as_built_mesh")
+    if drawn is not None and traced is not None:
         noise = report.get("mesh_retrace_stderr_rms")
-        lines.append(f"Traced through the written mesh, the view scores {traced:.1f} dB "
-                     f"({traced - built:+.1f} dB from the hole layout's trace)"
+        lines.append(f"Traced through the written mesh (the holes as drawn), the view scores "
+                     f"{traced:.1f} dB ({traced - drawn:+.1f} dB from the hole layout's)"
                      + (f"; Monte Carlo noise {noise:.2g} RMS per pixel: more rays per pixel "
                         "sharpen this check (--mesh-samples)." if noise else "."))
     diffracted = _mean(report, "as_built_diffraction")

@@ -84,6 +84,10 @@ SAMPLINGS: tuple[Sampling, ...] = ("holes", "pupil")
 #: Default samples_per_pixel: rays per (view pixel, hole) pair ("holes"), per view pixel
 #: ("pupil").
 DEFAULT_SAMPLES: dict[Sampling, int] = {"holes": 12, "pupil": 256}
+#: With samples_per_pixel None, hole sampling spends about this many rays (~20 s on one core)
+#: and at most MOST_SAMPLES per pair, never fewer than DEFAULT_SAMPLES["holes"].
+RAY_BUDGET = 30_000_000
+MOST_SAMPLES = 256
 #: Independent estimates per view pixel; their spread gives the standard error (REPLICATES - 1
 #: degrees of freedom per pixel).
 REPLICATES = 4
@@ -550,6 +554,19 @@ def _trace_holes(rays: _Rays, loops: HoleLoops, n: int, rng: np.random.Generator
     return cast, pairs
 
 
+def _budget_samples(loops: HoleLoops, scene: Scene, least: int) -> int:
+    """Rays per pair for about RAY_BUDGET rays in all (at least `least`, at most
+    MOST_SAMPLES): a sparse plate, with few holes behind each view pixel, gets more per pair."""
+    # The share of the plate's holes behind one view pixel: the pupil's footprint (grown by
+    # a hole) over the plate's area.
+    reach = scene.eye.pupil_mm / 2 + float(loops.top_circum_radius_mm.max(initial=0.0))
+    extent = loops.outline_max_mm - loops.outline_min_mm
+    share = min(1.0, math.pi * reach**2 / float(extent[0] * extent[1]))
+    nx, ny = scene.eye.view_pixels
+    pairs = max(1.0, nx * ny * loops.count * share)
+    return int(min(MOST_SAMPLES, max(least, RAY_BUDGET // pairs)))
+
+
 def trace_mesh_view(
     mesh: PlateMesh,
     scene: Scene,
@@ -572,8 +589,17 @@ def trace_mesh_view(
     pixels done, total). sampling: "holes" (importance sampling over the mesh's holes, for
     plates passing little light) or "pupil" (uniform over the pupil, needs no hole structure).
     """
+    loops = None
+    if sampling == "holes":
+        try:
+            loops = mesh_hole_loops(mesh)
+        except ValueError as error:
+            raise ValueError(f"{error} (sampling='holes' needs the plate's hole loops; "
+                             "sampling='pupil' traces any mesh)") from error
     if samples_per_pixel is None:
         samples_per_pixel = DEFAULT_SAMPLES.get(sampling, 0)
+        if loops is not None:
+            samples_per_pixel = _budget_samples(loops, scene, samples_per_pixel)
     display = _check_inputs(mesh, scene, display, position, samples_per_pixel, max_rays,
                             sampling)
     eye = scene.eye
@@ -586,12 +612,7 @@ def trace_mesh_view(
     channels = display.shape[0]
     rng = np.random.default_rng(seed)
     estimates = np.zeros((channels, nx * ny, REPLICATES), dtype=np.float64)
-    if sampling == "holes":
-        try:
-            loops = mesh_hole_loops(mesh)
-        except ValueError as error:
-            raise ValueError(f"{error} (sampling='holes' needs the plate's hole loops; "
-                             "sampling='pupil' traces any mesh)") from error
+    if loops is not None:
         cast, pairs = _trace_holes(rays, loops, n, rng, estimates, max_rays, progress)
     else:
         cast, pairs = _trace_pupil(rays, n, rng, estimates, max_rays, progress), 0

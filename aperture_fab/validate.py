@@ -8,10 +8,13 @@ Variants, each rendered for every target and eye position and judged the same wa
   images (for the nominal eye position);
 - ``random``: a uniform random mask (the dissertation's start), the display showing the target;
 - ``optimized``: the design before quantization;
-- ``quantized``: the holes as quantized (nominal radii) in the design model;
-- ``as_built``: the holes as the process makes them on average (its radius bias applied);
+- ``quantized``: the holes as drawn in the files (quantized, bias-compensated) in the design
+  model, as if the process added no bias;
+- ``as_built``: the holes as the process makes them on average (its radius bias applied): the
+  design, when the process's bias is what it claims;
 - ``as_built_mesh``: an independent ray trace through the mesh that was written (nominal eye
-  position; Monte Carlo, its standard error reported);
+  position; Monte Carlo, its standard error reported). The mesh holds the holes as drawn, so it
+  checks ``quantized``: that the file is the layout;
 - ``as_built_diffraction``: ``as_built`` with each hole's Airy spread per colour channel.
 
 Tolerances (Monte Carlo): hole-radius bias and sigma of the process, hole position error of the

@@ -326,8 +326,8 @@ def test_verdicts_hand_written(report: dict[str, Any]) -> None:
                         "the open display and 6.1 dB better than a regular pinhole array.")
     assert lines[1] == "Quantization and fabrication cost 0.6 dB."
     assert "The eye sees 12 % of the light of the open display." in lines
-    assert ("Traced through the written mesh, the view scores 31.1 dB (-0.1 dB from the hole "
-            "layout's trace).") in lines
+    assert ("Traced through the written mesh (the holes as drawn), the view scores 31.1 dB "
+            "(-0.4 dB from the hole layout's).") in lines
     assert "Holes of 0.080 mm: diffraction blurs them by about 1.3 view pixels." in lines
     assert any(line.startswith("Yield at 25.0 dB over 64 tolerance samples: 92 %.")
                for line in lines)

@@ -6,6 +6,7 @@ a user would print."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from functools import cache
 from typing import Any
 
@@ -24,6 +25,8 @@ from aperture_fab.model import Renderer
 from aperture_fab.process import PROCESSES, check_plate
 from aperture_fab.retrace import (
     DEFAULT_SAMPLES,
+    MOST_SAMPLES,
+    RAY_BUDGET,
     REPLICATES,
     TracedView,
     _cap_angle,
@@ -386,8 +389,24 @@ def test_samples_round_up_to_whole_replicates(sampling):
                              sampling=sampling)
     assert traced.samples_per_pixel == 3 * REPLICATES
     default = trace_mesh_view(mesh, scene, display, sampling=sampling)
-    assert default.samples_per_pixel == DEFAULT_SAMPLES[sampling]
+    if sampling == "pupil":
+        assert default.samples_per_pixel == DEFAULT_SAMPLES[sampling]
+    else:  # a ray budget: this small plate gets the most per pair
+        assert default.samples_per_pixel == MOST_SAMPLES
+        assert default.rays_cast <= RAY_BUDGET
     assert (default.pairs > 0) == (sampling == "holes")
+
+
+def test_the_ray_budget_gives_dense_plates_fewer_rays_per_pair():
+    from aperture_fab.mesh_holes import mesh_hole_loops
+    from aperture_fab.retrace import _budget_samples
+
+    scene, part, _, _ = random_case("straight")
+    loops = mesh_hole_loops(written_mesh(part))
+    sparse = _budget_samples(loops, scene, DEFAULT_SAMPLES["holes"])
+    many = replace(scene, eye=replace(scene.eye, view_pixels=(4000, 4000)))
+    dense = _budget_samples(loops, many, DEFAULT_SAMPLES["holes"])
+    assert sparse == MOST_SAMPLES and DEFAULT_SAMPLES["holes"] <= dense < sparse
 
 
 @pytest.mark.parametrize("kwargs, message", [
