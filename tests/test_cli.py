@@ -107,12 +107,15 @@ def test_design_writes_outputs_and_prints_the_psnr_table(
     printed = capsys.readouterr().out
     assert "PSNR" in printed
     header = next(line for line in printed.splitlines() if "regular_pinholes" in line)
-    assert header.split()[1:] == list(VARIANTS)
+    assert header.split()[1:] == [*VARIANTS, "quantized", "as_built"]
     row = next(line for line in printed.splitlines() if line.split()[:1] == ["marker"])
     shown = [float(x) for x in row.split()[1:]]
     summary = json.loads((folder / "design.json").read_text())
     assert summary["iterations"] == 8
     expected = [summary["metrics"][v]["psnr_db"][0] for v in VARIANTS]
+    report = json.loads((folder / "report.json").read_text())
+    expected += [report["metrics"][v]["per_target"]["marker"]["psnr_db"]
+                 for v in ("quantized", "as_built")]
     np.testing.assert_allclose(shown, expected, atol=0.006)
     with np.load(folder / "design.npz") as npz:
         assert npz["open_fraction"].shape == (16, 16)
