@@ -8,8 +8,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
-import numpy as np
-
 __all__ = ["main"]
 
 DESCRIPTION = """\
@@ -163,6 +161,8 @@ def _cmd_processes(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from aperture_fab.config import parse_toml, resolve
     from aperture_fab.fabricate import FILE_NAMES, PART_FORMATS, PartFormat, make_part
     from aperture_fab.pipeline import output_folder, write_part
