@@ -10,10 +10,19 @@ file; what it leaves out comes from the preset.
                 hole_axis
     [eye]       pupil_mm, eye_relief_mm, focus_mm = "infinity" | number,
                 fov_deg = "display" | [x, y], view_pixels = [nx, ny],
-                positions_mm = [[x, y], ...], weights = [...]
+                positions_mm = [[x, y], ...], weights = [...],
+                eyebox_mm = [w, h] or one number, eyebox_shape = "ellipse" | "rect",
+                pupil_range_mm = "nominal" | [lo, hi],
+                focus_range_diopters = "nominal" | [lo, hi], gaze_deg, rotation_mm
     [optimizer] method, learning_rate, momentum, iterations, schedule, init, display,
                 efficiency_weight, plateau_patience, plateau_tolerance, seed, precision,
-                device, checkpoint_every, quantize_share
+                device, checkpoint_every, quantize_share, eye_states, tail_share, tracking
+
+The eye distribution ([eye] eyebox_mm to rotation_mm, see aperture_fab.eyes) spreads the eye
+around its nominal state (pupil_mm, focus_mm, the first position); "nominal" ranges are that
+state only. A nominal pupil_mm or focus_mm set in a higher layer than its range, and outside
+that range, pins it: the range becomes "nominal" (e.g. --pupil-mm 8 over the near-eye preset's
+3 to 6 mm designs for an 8 mm pupil; --focus-mm 500 for 500 mm). Set both to spread around it.
 
 Other top-level tables (e.g. [process], [validation]) belong to other stages: they are kept as
 they are in `Config.extra`. Unknown keys inside the four sections above are errors.
@@ -32,6 +41,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
+from aperture_fab.eyes import EYEBOX_SHAPES
 from aperture_fab.presets import DEFAULT_PRESET, PRESETS
 from aperture_fab.scene import HOLE_AXES, Display, Eye, Plate, Scene, display_fov_deg
 from aperture_fab.settings import (
@@ -40,6 +50,7 @@ from aperture_fab.settings import (
     METHODS,
     PRECISIONS,
     SCHEDULES,
+    TRACKINGS,
     OptimizerSettings,
 )
 
@@ -50,28 +61,37 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
     "display": ("width_mm", "height_mm", "pixels"),
     "plate": ("cells", "pitch_mm", "gap_mm", "thickness_mm", "hole_axis"),
     "eye": ("pupil_mm", "eye_relief_mm", "focus_mm", "fov_deg", "view_pixels", "positions_mm",
-            "weights"),
+            "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
+            "gaze_deg", "rotation_mm"),
     "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
                   "display", "efficiency_weight", "plateau_patience", "plateau_tolerance", "seed",
-                  "precision", "device", "checkpoint_every", "quantize_share"),
+                  "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
+                  "tail_share", "tracking"),
 }
 
 INFINITY = "infinity"
 DISPLAY_FOV = "display"
+NOMINAL = "nominal"
+#: Each eye range and the nominal value that pins it when set in a higher layer.
+_RANGE_NOMINALS = {"eye.pupil_range_mm": "eye.pupil_mm",
+                   "eye.focus_range_diopters": "eye.focus_mm"}
 
 _FLOATS = {
     "display.width_mm", "display.height_mm", "plate.gap_mm", "plate.thickness_mm",
     "eye.pupil_mm", "eye.eye_relief_mm", "optimizer.learning_rate", "optimizer.momentum",
     "optimizer.efficiency_weight", "optimizer.plateau_tolerance", "optimizer.quantize_share",
+    "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
 }
 _WHOLES = {
     "optimizer.iterations", "optimizer.plateau_patience", "optimizer.seed",
-    "optimizer.checkpoint_every",
+    "optimizer.checkpoint_every", "optimizer.eye_states",
 }
 _WHOLE_PAIRS = {"display.pixels", "plate.cells", "eye.view_pixels"}
 #: Text keys and their choices (None: free text, checked by the dataclass).
 _TEXTS: dict[str, tuple[str, ...] | None] = {
     "plate.hole_axis": HOLE_AXES,
+    "eye.eyebox_shape": EYEBOX_SHAPES,
+    "optimizer.tracking": TRACKINGS,
     "optimizer.method": METHODS,
     "optimizer.schedule": SCHEDULES,
     "optimizer.init": INITS,
@@ -279,9 +299,15 @@ def _convert(layers: _Layers, key: str) -> Any:
             expected = f"one of {', '.join(choices)}" if choices else "text in quotes"
             raise _wrong(key, value, where, expected)
         return value
-    if key == "plate.pitch_mm":
+    if key in ("plate.pitch_mm", "eye.eyebox_mm"):
         if _is_number(value):
             return (float(value), float(value))
+        return _float_pair(key, value, where)
+    if key in _RANGE_NOMINALS:
+        if value == NOMINAL:
+            return None
+        if _is_number(value) or isinstance(value, str):
+            raise _wrong(key, value, where, f'"{NOMINAL}" or a pair [lo, hi]')
         return _float_pair(key, value, where)
     if key == "eye.focus_mm":
         if value == INFINITY:
@@ -342,6 +368,19 @@ def _thaw(value: Any) -> Any:
     return value
 
 
+def _pin_ranges(eye_args: dict[str, Any], layers: _Layers) -> None:
+    """A nominal set in a higher layer than its range, outside it, makes the range nominal."""
+    nominals = {"eye.pupil_mm": eye_args["pupil_mm"],
+                "eye.focus_mm": 0.0 if eye_args["focus_mm"] is None
+                else 1000.0 / eye_args["focus_mm"]}
+    for range_key, nominal_key in _RANGE_NOMINALS.items():
+        name = range_key.partition(".")[2]
+        bounds, value = eye_args[name], nominals[nominal_key]
+        if (bounds is not None and layers.sources[nominal_key][0] > layers.sources[range_key][0]
+                and not bounds[0] <= value <= bounds[1]):
+            eye_args[name] = None
+
+
 def resolve(
     preset: str | None = None,
     file_dict: Mapping[str, Any] | None = None,
@@ -392,6 +431,7 @@ def resolve(
     if (len(eye_args["weights"]) != n_positions
             and layers.sources["eye.weights"][0] < layers.sources["eye.positions_mm"][0]):
         eye_args["weights"] = (1.0,) * n_positions
+    _pin_ranges(eye_args, layers)
     eye = _build(Eye, eye_args, layers)
     scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
     optimizer = _build(OptimizerSettings, _section(layers, "optimizer"), layers)
@@ -400,6 +440,10 @@ def resolve(
 
 # ---------------------------------------------------------------------------------------------
 # Writing
+
+
+def _range_value(bounds: tuple[float, float] | None) -> Any:
+    return NOMINAL if bounds is None else list(bounds)
 
 
 def to_dict(config: Config) -> dict[str, Any]:
@@ -416,7 +460,11 @@ def to_dict(config: Config) -> dict[str, Any]:
                 "focus_mm": INFINITY if eye.focus_mm is None else eye.focus_mm,
                 "fov_deg": list(eye.fov_deg), "view_pixels": list(eye.view_pixels),
                 "positions_mm": [list(p) for p in eye.positions_mm],
-                "weights": list(eye.weights)},
+                "weights": list(eye.weights), "eyebox_mm": list(eye.eyebox_mm),
+                "eyebox_shape": eye.eyebox_shape,
+                "pupil_range_mm": _range_value(eye.pupil_range_mm),
+                "focus_range_diopters": _range_value(eye.focus_range_diopters),
+                "gaze_deg": eye.gaze_deg, "rotation_mm": eye.rotation_mm},
         "optimizer": {key: getattr(opt, key) for key in SECTION_KEYS["optimizer"]},
     }
     return {"preset": config.preset, **sections, **_thaw(config.extra)}

@@ -16,7 +16,8 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
     tolerance       {"samples", "psnr_percentiles": {"5", "50", "95"}, "yield" (0 to 1),
                     "threshold_db"} or null when not computed
     timings_s       {stage: seconds}
-    scene           `scene_dict(scene)`: display, plate, eye (focus_mm null = infinity)
+    scene           `scene_dict(scene)`: display, plate, eye (focus_mm null = infinity; the eye
+                    distribution's keys as in the config, its ranges resolved to [lo, hi])
     config          the resolved config (aperture_fab.config.to_dict)
     versions        {package: version}
 
@@ -37,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from aperture_fab.eyes import distribution_of
 from aperture_fab.metrics import METRIC_KEYS, summarize
 from aperture_fab.scene import Scene
 
@@ -241,6 +243,7 @@ def json_ready(value: Any, where: str = "report") -> Any:
 def scene_dict(scene: Scene) -> dict[str, Any]:
     """The report's "scene" block from the dataclasses (focus_mm None means infinity)."""
     display, plate, eye = scene.display, scene.plate, scene.eye
+    distribution = distribution_of(eye)
     return {
         "display": {"width_mm": display.width_mm, "height_mm": display.height_mm,
                     "pixels": list(display.pixels)},
@@ -251,7 +254,12 @@ def scene_dict(scene: Scene) -> dict[str, Any]:
                 "focus_mm": eye.focus_mm, "fov_deg": list(eye.fov_deg),
                 "view_pixels": list(eye.view_pixels),
                 "positions_mm": [list(p) for p in eye.positions_mm],
-                "weights": list(eye.weights)},
+                "weights": list(eye.weights),
+                # The eye distribution, ranges resolved ("nominal" is [nominal, nominal]).
+                "eyebox_mm": list(eye.eyebox_mm), "eyebox_shape": eye.eyebox_shape,
+                "pupil_range_mm": list(distribution.pupil_range_mm),
+                "focus_range_diopters": list(distribution.focus_range_diopters),
+                "gaze_deg": eye.gaze_deg, "rotation_mm": eye.rotation_mm},
     }
 
 

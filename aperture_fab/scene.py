@@ -16,6 +16,8 @@ from typing import Literal
 
 import numpy as np
 
+from aperture_fab.eyes import ROTATION_MM, EyeboxShape, check_fields
+
 __all__ = [
     "HoleAxis",
     "Display",
@@ -167,6 +169,17 @@ class Eye:
     view_pixels: (nx, ny) view grid, uniform in tan(angle).
     positions_mm: lateral pupil-centre offsets (x, y) across the eyebox; the first is nominal.
     weights: one weight per position (normalised when used).
+
+    The distribution of eye states a worn device sees (`aperture_fab.eyes.distribution_of`),
+    around the nominal state above; the defaults are the nominal point only:
+    eyebox_mm: (w, h) full size of the region the pupil centre takes around the first position.
+    eyebox_shape: "ellipse" or "rect", uniform over it.
+    pupil_range_mm: (lo, hi) pupil diameters, uniform; None: pupil_mm only.
+    focus_range_diopters: (lo, hi) accommodation, uniform in diopters (1000 / mm, 0 =
+        infinity); None: focus_mm only.
+    gaze_deg: largest gaze rotation, degrees (uniform over a disk of gaze angles); 0: none.
+    rotation_mm: pupil to the eye's centre of rotation (gaze moves the pupil by
+        rotation_mm sin(angle) per axis).
     """
 
     pupil_mm: float
@@ -176,6 +189,12 @@ class Eye:
     focus_mm: float | None = None
     positions_mm: tuple[tuple[float, float], ...] = ((0.0, 0.0),)
     weights: tuple[float, ...] = (1.0,)
+    eyebox_mm: tuple[float, float] = (0.0, 0.0)
+    eyebox_shape: EyeboxShape = "ellipse"
+    pupil_range_mm: tuple[float, float] | None = None
+    focus_range_diopters: tuple[float, float] | None = None
+    gaze_deg: float = 0.0
+    rotation_mm: float = ROTATION_MM
 
     def __post_init__(self) -> None:
         check_positive("eye.pupil_mm", self.pupil_mm,
@@ -212,6 +231,23 @@ class Eye:
             raise ValueError(
                 f"eye.weights = {self.weights} must be >= 0 with a positive sum."
             )
+        check_pair("eye.eyebox_mm", self.eyebox_mm, float)
+        for name in ("pupil_range_mm", "focus_range_diopters"):
+            if getattr(self, name) is not None:
+                check_pair(f"eye.{name}", getattr(self, name), float)
+        names = {k: f"eye.{k}" for k in ("eyebox_mm", "eyebox_shape", "pupil_range_mm",
+                                         "focus_range_diopters", "gaze_deg", "rotation_mm")}
+        names.update(pupil="eye.pupil_mm", focus="eye.focus_mm")
+        check_fields(names, eyebox_mm=self.eyebox_mm, eyebox_shape=self.eyebox_shape,
+                     pupil_range_mm=self.pupil_range_mm, nominal_pupil_mm=self.pupil_mm,
+                     focus_range_diopters=self.focus_range_diopters,
+                     nominal_focus_diopters=self.focus_diopters, gaze_deg=self.gaze_deg,
+                     rotation_mm=self.rotation_mm)
+
+    @property
+    def focus_diopters(self) -> float:
+        """The nominal accommodation, 1000 / focus_mm; 0 at infinity."""
+        return 0.0 if self.focus_mm is None else 1000.0 / self.focus_mm
 
     @property
     def view_tan_half(self) -> tuple[float, float]:

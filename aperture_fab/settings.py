@@ -8,21 +8,26 @@ from typing import Literal
 
 from aperture_fab.scene import check_positive
 
-__all__ = ["Method", "Schedule", "Init", "DisplayMode", "Precision", "OptimizerSettings"]
+__all__ = ["Method", "Schedule", "Init", "DisplayMode", "Precision", "Tracking",
+           "OptimizerSettings"]
 
 Method = Literal["adam", "sgd"]
 Schedule = Literal["constant", "cosine"]
 Init = Literal["pinholes", "random", "uniform"]
 DisplayMode = Literal["optimized", "target"]
 Precision = Literal["float32", "float64"]
+Tracking = Literal["untracked", "tracked"]
 
 METHODS: tuple[Method, ...] = ("adam", "sgd")
 SCHEDULES: tuple[Schedule, ...] = ("constant", "cosine")
 INITS: tuple[Init, ...] = ("pinholes", "random", "uniform")
 DISPLAY_MODES: tuple[DisplayMode, ...] = ("optimized", "target")
 PRECISIONS: tuple[Precision, ...] = ("float32", "float64")
+TRACKINGS: tuple[Tracking, ...] = ("untracked", "tracked")
 
 MAX_ITERATIONS = 1_000_000
+#: Most eye states drawn per iteration: each is a full render of every target.
+MAX_EYE_STATES = 1024
 
 
 def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
@@ -54,6 +59,14 @@ class OptimizerSettings:
         the fabrication process makes (forward snapped, gradient straight through), so the
         display content and the other holes adapt to what is made; 0: quantize afterwards only.
         Used when designing for a process.
+    eye_states: eye states drawn from the eye distribution (`aperture_fab.eyes`) each
+        iteration; a fresh draw every iteration. 1 with a point distribution is the nominal eye.
+    tail_share: share of the worst states the loss averages: 1 is the plain expected loss over
+        the states, 0.1 the mean of the worst 10 % (a CVaR, for a design that holds up at the
+        edges of the eyebox rather than on average).
+    tracking: "untracked" (one display content for every eye state: the device does not know
+        where the eye is) or "tracked" (display content solved per eye state, as with an eye
+        tracker).
     """
 
     method: Method = "adam"
@@ -71,6 +84,9 @@ class OptimizerSettings:
     device: str = "auto"
     checkpoint_every: int = 50
     quantize_share: float = 0.3
+    eye_states: int = 16
+    tail_share: float = 1.0
+    tracking: Tracking = "untracked"
 
     def __post_init__(self) -> None:
         _check_choice("optimizer.method", self.method, METHODS)
@@ -78,6 +94,7 @@ class OptimizerSettings:
         _check_choice("optimizer.init", self.init, INITS)
         _check_choice("optimizer.display", self.display, DISPLAY_MODES)
         _check_choice("optimizer.precision", self.precision, PRECISIONS)
+        _check_choice("optimizer.tracking", self.tracking, TRACKINGS)
         check_positive("optimizer.learning_rate", self.learning_rate,
                        "Typical: 0.01 to 0.1 for Adam, 0.1 to 1 for SGD.", 100.0)
         if not (math.isfinite(self.momentum) and 0 <= self.momentum < 1):
@@ -104,6 +121,22 @@ class OptimizerSettings:
             raise ValueError(
                 f"optimizer.quantize_share = {self.quantize_share!r} is out of range; allowed: "
                 "0 to 1 (the share of iterations that see makeable holes; 0 turns it off)."
+            )
+        if not (isinstance(self.eye_states, int) and not isinstance(self.eye_states, bool)):
+            raise TypeError(f"optimizer.eye_states must be a whole number, got "
+                            f"{self.eye_states!r}")
+        if not 1 <= self.eye_states <= MAX_EYE_STATES:
+            raise ValueError(
+                f"optimizer.eye_states = {self.eye_states} is out of range; allowed: 1 to "
+                f"{MAX_EYE_STATES} (eye states drawn per iteration; each costs one render, "
+                "typical 8 to 32; 1 for a fixed eye)."
+            )
+        if not (isinstance(self.tail_share, (int, float)) and not isinstance(self.tail_share, bool)
+                and math.isfinite(self.tail_share) and 0 < self.tail_share <= 1):
+            raise ValueError(
+                f"optimizer.tail_share = {self.tail_share!r} is out of range; allowed: 0 < "
+                "tail_share <= 1 (1: the mean loss over eye states; 0.1: the mean of the worst "
+                "10 %)."
             )
         if not (math.isfinite(self.plateau_tolerance) and 0 <= self.plateau_tolerance < 1):
             raise ValueError(

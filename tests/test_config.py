@@ -296,3 +296,137 @@ def test_toml_syntax_error_names_source_and_line() -> None:
 def test_duplicate_section_is_a_syntax_error() -> None:
     with pytest.raises(ValueError, match=r"dup\.toml.*line 3"):
         parse_toml("[plate]\ngap_mm = 1\n[plate]\n", "dup.toml")
+
+
+# --- the eye distribution and how the optimizer samples it ------------------------------------
+
+
+def test_near_eye_designs_for_a_moving_eye() -> None:
+    eye, opt = resolve().scene.eye, resolve().optimizer
+    assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.pupil_mm,
+            eye.focus_range_diopters, eye.gaze_deg, eye.rotation_mm) == (
+        (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, (0.0, 0.5), 0.0, 11.0)
+    assert (opt.eye_states, opt.tail_share, opt.tracking) == (16, 1.0, "untracked")
+
+
+@pytest.mark.parametrize("name", ["near-eye-nominal", "seed"])
+def test_nominal_presets_are_the_nominal_point(name: str) -> None:
+    config = resolve(name)
+    eye = config.scene.eye
+    assert (eye.eyebox_mm, eye.pupil_range_mm, eye.focus_range_diopters, eye.gaze_deg) == (
+        (0.0, 0.0), None, None, 0.0)
+    assert config.optimizer.eye_states == 1
+    written = to_dict(config)["eye"]
+    assert written["pupil_range_mm"] == written["focus_range_diopters"] == "nominal"
+
+
+def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -> None:
+    near, nominal = to_dict(resolve("near-eye")), to_dict(resolve("near-eye-nominal"))
+    distribution_keys = {"eyebox_mm", "pupil_range_mm", "focus_range_diopters"}
+    for section in SECTION_KEYS:
+        for key in SECTION_KEYS[section]:
+            if key in distribution_keys or key == "eye_states":
+                assert near[section][key] != nominal[section][key], key
+            else:
+                assert near[section][key] == nominal[section][key], key
+    assert "near-eye-nominal" in PRESET_DESCRIPTIONS
+    assert "the nominal eye only" in preset_summary("near-eye-nominal")
+    assert "eyebox 4 x 4 mm ellipse, pupil 3-6 mm, focus 0-0.5 D" in preset_summary("near-eye")
+
+
+eye_distribution_overrides = st.fixed_dictionaries(
+    {},
+    optional={
+        "eye.eyebox_mm": st.one_of(st.floats(0.0, 50.0),
+                                   st.lists(st.floats(0.0, 50.0), min_size=2, max_size=2)),
+        "eye.eyebox_shape": st.sampled_from(["ellipse", "rect"]),
+        "eye.pupil_range_mm": st.one_of(
+            st.just("nominal"),
+            st.tuples(st.floats(0.5, 4.0), st.floats(4.0, 20.0)).map(list)),
+        "eye.focus_range_diopters": st.one_of(
+            st.just("nominal"), st.tuples(st.just(0.0), st.floats(0.0, 10.0)).map(list)),
+        "eye.gaze_deg": st.floats(0.0, 45.0),
+        "eye.rotation_mm": st.floats(0.0, 30.0),
+        "optimizer.eye_states": st.integers(1, 1024),
+        "optimizer.tail_share": st.floats(0.0, 1.0, exclude_min=True),
+        "optimizer.tracking": st.sampled_from(["untracked", "tracked"]),
+    },
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(list(PRESETS)), overrides=eye_distribution_overrides)
+def test_eye_distribution_keys_round_trip(name: str, overrides: dict[str, Any]) -> None:
+    config = resolve(name, overrides=overrides)
+    assert round_trip(config) == config
+    assert parse_toml(to_toml(config), "x") == to_dict(config)
+    for dotted, value in overrides.items():
+        section, _, key = dotted.partition(".")
+        written = to_dict(config)[section][key]
+        if isinstance(value, float) and key == "eyebox_mm":
+            value = [value, value]
+        assert written == value, (dotted, written, value)
+
+
+def test_eye_distribution_from_a_toml_file() -> None:
+    text = ('[eye]\neyebox_mm = 6\neyebox_shape = "rect"\npupil_range_mm = [2, 8]\n'
+            'focus_range_diopters = [0, 1]\ngaze_deg = 10\nrotation_mm = 12\n'
+            '[optimizer]\neye_states = 8\ntail_share = 0.2\ntracking = "tracked"\n')
+    config = resolve(file_dict=parse_toml(text, "eye.toml"))
+    eye, opt = config.scene.eye, config.optimizer
+    assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.focus_range_diopters,
+            eye.gaze_deg, eye.rotation_mm) == ((6.0, 6.0), "rect", (2.0, 8.0), (0.0, 1.0), 10.0,
+                                               12.0)
+    assert (opt.eye_states, opt.tail_share, opt.tracking) == (8, 0.2, "tracked")
+    assert round_trip(config) == config
+    assert "pupil_range_mm = [2.0, 8.0]" in to_toml(config)
+    assert 'pupil_range_mm = "nominal"' in to_toml(resolve("seed"))
+
+
+def test_a_nominal_set_above_its_range_and_outside_it_pins_the_range() -> None:
+    # Inside the preset's range: the range stays, the nominal moves.
+    inside = resolve(overrides={"eye.pupil_mm": 5.0, "eye.focus_mm": 2500.0}).scene.eye
+    assert inside.pupil_range_mm == (3.0, 6.0) and inside.focus_range_diopters == (0.0, 0.5)
+    assert inside.pupil_mm == 5.0 and inside.focus_mm == 2500.0
+    # Outside: the eye is pinned there (each range on its own).
+    pinned = resolve(overrides={"eye.pupil_mm": 8.0}).scene.eye
+    assert pinned.pupil_range_mm is None and pinned.focus_range_diopters == (0.0, 0.5)
+    focused = resolve(file_dict={"eye": {"focus_mm": 500.0}}).scene.eye
+    assert focused.focus_range_diopters is None and focused.pupil_range_mm == (3.0, 6.0)
+    # Both set together: both kept, and checked against each other.
+    both = resolve(overrides={"eye.pupil_mm": 8.0, "eye.pupil_range_mm": [6.0, 9.0]})
+    assert both.scene.eye.pupil_range_mm == (6.0, 9.0)
+
+
+@pytest.mark.parametrize("kwargs, error, fragments", [
+    ({"overrides": {"eye.eyebox_mm": "wide"}}, TypeError, ["eye.eyebox_mm", "[x, y]"]),
+    ({"overrides": {"eye.eyebox_mm": [4.0, 80.0]}}, ValueError, ["eye.eyebox_mm", "0 to 50"]),
+    ({"overrides": {"eye.eyebox_shape": "circle"}}, ValueError,
+     ["eye.eyebox_shape", "ellipse, rect"]),
+    ({"overrides": {"eye.pupil_range_mm": [6.0, 3.0]}}, ValueError,
+     ["eye.pupil_range_mm", "lo <= hi", "flags"]),
+    ({"overrides": {"eye.pupil_range_mm": "all"}}, TypeError,
+     ["eye.pupil_range_mm", '"nominal" or a pair']),
+    ({"file_dict": {"eye": {"pupil_range_mm": [5.0, 7.0]}}, "file_source": "e.toml"}, ValueError,
+     ["eye.pupil_mm = 4.0 is outside eye.pupil_range_mm", "eye.pupil_mm came from preset",
+      "eye.pupil_range_mm came from file 'e.toml'"]),
+    ({"overrides": {"eye.focus_range_diopters": [0.0, 20.0]}}, ValueError,
+     ["eye.focus_range_diopters", "10"]),
+    ({"overrides": {"eye.focus_range_diopters": 0.5}}, TypeError, ["eye.focus_range_diopters"]),
+    ({"overrides": {"eye.gaze_deg": 60.0}}, ValueError, ["eye.gaze_deg", "0 to 45"]),
+    ({"overrides": {"eye.rotation_mm": -1.0}}, ValueError, ["eye.rotation_mm", "0 to 30"]),
+    ({"overrides": {"optimizer.eye_states": 0}}, ValueError, ["optimizer.eye_states", "1 to"]),
+    ({"overrides": {"optimizer.eye_states": 4.0}}, TypeError, ["optimizer.eye_states", "whole"]),
+    ({"overrides": {"optimizer.tail_share": 0.0}}, ValueError,
+     ["optimizer.tail_share", "0 < tail_share <= 1"]),
+    ({"overrides": {"optimizer.tail_share": 1.5}}, ValueError, ["optimizer.tail_share"]),
+    ({"overrides": {"optimizer.tracking": "maybe"}}, ValueError,
+     ["optimizer.tracking", "untracked, tracked"]),
+])
+def test_bad_eye_distribution_values_give_clear_errors(
+    kwargs: dict[str, Any], error: type[Exception], fragments: list[str]
+) -> None:
+    with pytest.raises(error) as info:
+        resolve(**kwargs)
+    for fragment in fragments:
+        assert fragment in str(info.value), (fragment, str(info.value))
