@@ -25,14 +25,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from aperture_fab import kernels
+from aperture_fab.eyes import EyeStates
+from aperture_fab.kernels import STATE_FIELDS
 from aperture_fab.scene import Scene
 
-__all__ = ["Renderer", "render_open"]
+__all__ = ["BACKENDS", "Backend", "Renderer", "render_open", "render_open_states"]
 
 #: Spacing of the blur-stack radius levels in display pixels (finer: smaller interpolation error).
 LEVEL_SPACING_PX = 0.5
@@ -43,6 +47,8 @@ DISK_SPOKES = 48
 #: (view pixel, hole) pairs evaluated at once; bounds memory to a few hundred MB.
 DEFAULT_CHUNK_PAIRS = 1_500_000
 _EPS = 1e-12
+#: An eye state must focus beyond this multiple of the pupil-to-plate distance (as Scene checks).
+FOCUS_MARGIN = 1.05
 
 
 @dataclass(frozen=True)
@@ -57,8 +63,10 @@ class _Optics:
     beta_display: float
 
     @classmethod
-    def of(cls, scene: Scene) -> _Optics:
-        q = 0.0 if scene.eye.focus_mm is None else 1.0 / scene.eye.focus_mm
+    def of(cls, scene: Scene, q: float | None = None) -> _Optics:
+        """The scene's optics, for its eye's focus or for q = 1 / focus distance (1/mm)."""
+        if q is None:
+            q = 0.0 if scene.eye.focus_mm is None else 1.0 / scene.eye.focus_mm
         s_b, s_t, s_d = scene.plate_distance_mm, scene.eye.eye_relief_mm, scene.display_distance_mm
         return cls(s_b, s_t, s_d, 1 - s_b * q, 1 - s_t * q, 1 - s_d * q)
 
@@ -212,18 +220,30 @@ def _checked_offsets(scene: Scene, offsets: np.ndarray | None) -> np.ndarray | N
     return array
 
 
-class Renderer:
-    """Renders views of one scene; caches its geometry. Differentiable in the open-area fractions
-    and the display content.
+Backend = Literal["auto", "kernel", "torch"]
+BACKENDS: tuple[Backend, ...] = ("auto", "kernel", "torch")
+#: Pair tables of the torch path kept per renderer (nominal positions and recent eye states).
+TABLE_CACHE = 8
+#: Most grad-stack buffers of the CPU kernel's backward (one per block of view rows).
+MAX_GRAD_BLOCKS_BYTES = 2 * 2**30
 
-    scene: the scene; device, dtype: where and how to compute; chunk_pairs: memory bound (pairs
-    evaluated at once).
+
+class Renderer:
+    """Renders views of one scene for any batch of eye states; differentiable in the open-area
+    fractions and the display content.
+
+    scene: the scene (its eye gives the nominal pupil, focus and positions; `render_states`
+        takes any others); device, dtype: where and how to compute; chunk_pairs: memory bound
+        of the torch path (pairs evaluated at once).
     hole_offset_mm: (rows, cols, 2) float64 or None, lateral displacement (x right, y up; row 0
         at +y) of each cell's hole from its cell centre, the same at both faces and for every
-        eye position (chief-ray axes keep the direction of the undisplaced hole). Offsets of
+        eye state (chief-ray axes keep the direction of the undisplaced hole). Offsets of
         more than a pitch are handled: the hole search widens by the largest offset (cost grows
         as its square), so no pair is lost; holes that come to overlap add their light (no
         union). Offsets beyond the plate's size are rejected.
+    backend: "kernel" (fused CPU kernels, `aperture_fab.kernels`: geometry on the fly, a batch
+        of eye states in one pass), "torch" (pair tables and grid_sample: CUDA, and the
+        reference the kernels are tested against) or "auto" (kernel on the CPU, torch on CUDA).
     """
 
     def __init__(
@@ -233,22 +253,34 @@ class Renderer:
         dtype: torch.dtype = torch.float32,
         chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
         hole_offset_mm: np.ndarray | None = None,
+        backend: Backend = "auto",
     ) -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"backend = {backend!r} is not allowed; choose one of "
+                             f"{', '.join(BACKENDS)}.")
         self.scene = scene
         self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
         self.device = torch.device(device)
         self.dtype = dtype
         self.chunk_pairs = chunk_pairs
+        if backend == "auto":
+            backend = "kernel" if self.device.type == "cpu" else "torch"
+        elif backend == "kernel" and self.device.type != "cpu":
+            raise ValueError(f"backend 'kernel' runs on the CPU; device is {self.device}. Use "
+                             "backend 'torch' (or 'auto') on CUDA.")
+        self.backend = backend
         self.optics = opt = _Optics.of(scene)
         plate, eye, display = scene.plate, scene.eye, scene.display
 
-        # Radius levels of the display window (mm on the display), uniform in radius squared.
-        self.window_max_mm = abs(opt.window_scale) * plate.max_radius_mm
+        # Radius levels of the display window (mm on the display), uniform in radius squared;
+        # wide enough for an eye focused at infinity too (|mu| = 1), for eye states off nominal.
+        self.window_max_mm = max(abs(opt.window_scale), 1.0) * plate.max_radius_mm
         pixel_mm = display.pixel_mm
         levels = math.ceil(self.window_max_mm / (LEVEL_SPACING_PX * min(pixel_mm))) + 1
         levels = min(MAX_LEVELS, max(2, levels))
         radii = self.window_max_mm * np.sqrt(np.linspace(0, 1, levels))
         step = eye.view_step
+        # The view pixel's box on the display, at the nominal focus (see docs/model.md).
         box = (opt.window_rate * step[0], opt.window_rate * step[1])
         kernels = _window_kernels(pixel_mm, box, radii)
         self.kernel_size = kernels.shape[-1]
@@ -258,15 +290,64 @@ class Renderer:
         k = torch.as_tensor(kernels, dtype=dtype, device=self.device)
         self._kernel_spectrum = torch.fft.rfft2(k, s=self._fft_shape)
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
-        self._pairs: dict[int, _Pairs] = {}
+        self._pairs: dict[tuple[float, ...], _Pairs] = {}
 
     @property
     def _axis_length(self) -> float:
         """Plate mid-thickness to the pupil: the length of a chief-ray hole axis."""
         return self.scene.eye.eye_relief_mm + self.scene.plate.thickness_mm / 2
 
+    @property
+    def _search_extra_mm(self) -> float:
+        """How much farther than the footprint a hole's axis may lie and still reach it: the
+        chief-ray tilt at the bottom face plus the largest hole displacement."""
+        plate, eye = self.scene.plate, self.scene.eye
+        extra = 0.0
+        if plate.hole_axis == "chief_ray":
+            half = math.hypot(plate.size_mm[0] / 2 + abs(eye.positions_mm[0][0]),
+                              plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
+            extra = plate.thickness_mm / 2 * half / self._axis_length
+        if self.hole_offset_mm is not None:
+            extra += float(np.linalg.norm(self.hole_offset_mm, axis=-1).max())
+        return extra
+
+    def nominal_states(self, position: int = 0) -> EyeStates:
+        """The eye state at eyebox position `position` of the scene, nominal pupil and focus."""
+        eye = self.scene.eye
+        if not 0 <= position < len(eye.positions_mm):
+            raise ValueError(f"position = {position} is out of range; the scene has "
+                             f"{len(eye.positions_mm)} eyebox position(s).")
+        return EyeStates(
+            offset_mm=np.array([eye.positions_mm[position]], dtype=np.float64),
+            pupil_mm=np.array([eye.pupil_mm]),
+            focus_diopters=np.array([0.0 if eye.focus_mm is None else 1000.0 / eye.focus_mm]),
+            gaze_deg=np.zeros((1, 2)),
+            weight=np.ones(1),
+        )
+
+    def state_rows(self, states: EyeStates) -> np.ndarray:
+        """Per state (S, len(STATE_FIELDS)) float64: the constants the pair geometry needs."""
+        scene = self.scene
+        limit_d = 1000.0 / (scene.plate_distance_mm * FOCUS_MARGIN)
+        rows = []
+        for (cx, cy), pupil, diopters in zip(states.offset_mm, states.pupil_mm,
+                                             states.focus_diopters, strict=True):
+            if not 0 <= diopters < limit_d:
+                raise ValueError(
+                    f"eye state focus {diopters:g} diopters is out of range; allowed: 0 (infinity)"
+                    f" up to {limit_d:.3g} (focused beyond the plate).")
+            opt = _Optics.of(scene, diopters / 1000.0)
+            pupil_b = pupil / 2 * abs(opt.beta_bottom)
+            mu = opt.window_scale
+            rows.append((cx, cy, pupil_b, opt.top_to_bottom, mu,
+                         mu * mu / math.pi / max(self.window_max_mm**2, _EPS),
+                         1 / (math.pi * pupil_b**2), pupil_b + 2 * scene.plate.max_radius_mm))
+        return np.asarray(rows, dtype=np.float64).reshape(-1, len(STATE_FIELDS))
+
     def pair_count(self, position: int = 0) -> int:
-        return int(self._pair_table(position).hole.numel())
+        """(view pixel, hole) pairs the nominal state at `position` evaluates."""
+        return int(self._pair_table(self.state_rows(self.nominal_states(position))[0])
+                   .hole.numel())
 
     # -- display ------------------------------------------------------------------------------
 
@@ -278,41 +359,86 @@ class Renderer:
         c = self.kernel_size // 2
         return full[:, :, c : c + d.shape[-2], c : c + d.shape[-1]].unsqueeze(0)
 
-    # -- geometry -----------------------------------------------------------------------------
+    # -- rendering ----------------------------------------------------------------------------
 
-    def _pair_table(self, position: int) -> _Pairs:
-        if position not in self._pairs:
+    def render(self, open_fraction: torch.Tensor, display: torch.Tensor, position: int = 0
+               ) -> torch.Tensor:
+        """View (C, ny, nx) through holes of open-area fractions (rows, cols) onto a display
+        (C, H, W) in linear light, from eye position `position` of the scene's eyebox."""
+        return self.render_stack(open_fraction, self.display_stack(display), position)
+
+    def render_stack(self, open_fraction: torch.Tensor, stack: torch.Tensor, position: int = 0
+                     ) -> torch.Tensor:
+        """As `render`, with the display already pre-filtered by `display_stack`."""
+        return self.render_states(open_fraction, stack, self.nominal_states(position))[0]
+
+    def render_states(self, open_fraction: torch.Tensor, stack: torch.Tensor,
+                      states: EyeStates) -> torch.Tensor:
+        """Views (S, C, ny, nx) of one display stack (from `display_stack`) through holes of
+        open-area fractions (rows, cols), for each of a batch of eye states, in one pass."""
+        scene = self.scene
+        cells = (scene.plate.cells[1], scene.plate.cells[0])
+        if tuple(open_fraction.shape) != cells:
+            raise ValueError(
+                f"open_fraction has shape {tuple(open_fraction.shape)}; the plate has "
+                f"(rows, cols) = {cells}."
+            )
+        a = open_fraction.to(self.device, self.dtype).reshape(-1).clamp_min(0)
+        px, py = scene.plate.pitch_mm
+        radius = (a * (px * py / math.pi)).add(_EPS).sqrt()
+        rows = self.state_rows(states)
+        if self.backend == "kernel":
+            view = _KernelView.apply(radius, stack, self, rows)
+        else:
+            view = torch.stack([self._render_table(radius, stack, row) for row in rows])
+        return view.reshape(len(rows), stack.shape[1], *reversed(scene.eye.view_pixels))
+
+    # -- torch path: pair tables --------------------------------------------------------------
+
+    def _pair_table(self, row: np.ndarray) -> _Pairs:
+        key = tuple(float(v) for v in row)
+        if key not in self._pairs:
+            if len(self._pairs) >= TABLE_CACHE:
+                self._pairs.pop(next(iter(self._pairs)))
             with torch.no_grad():
-                self._pairs[position] = self._build_pairs(position)
-        return self._pairs[position]
+                self._pairs[key] = self._build_pairs(row)
+        return self._pairs[key]
 
-    def _build_pairs(self, position: int) -> _Pairs:
-        scene, opt = self.scene, self.optics
+    def _render_table(self, radius: torch.Tensor, stack: torch.Tensor, row: np.ndarray
+                      ) -> torch.Tensor:
+        pairs = self._pair_table(row)
+        radius = torch.cat([radius, radius.new_full((1,), math.sqrt(_EPS))])  # a closed cell
+        rows_per_chunk = max(1, self.chunk_pairs // max(1, pairs.hole.shape[1]))
+        out = []
+        for start in range(0, pairs.hole.shape[0], rows_per_chunk):
+            sl = slice(start, start + rows_per_chunk)
+            weight, level = _PairWeights.apply(
+                radius, pairs.hole[sl], pairs.lens_offset_mm[sl], pairs.pupil_offset_mm[sl],
+                abs(float(row[3])), float(row[2]), float(row[5]))
+            grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
+            samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
+                                    align_corners=True)[0, :, 0]  # (C, n, S)
+            out.append((samples * weight).sum(-1))
+        return torch.cat(out, dim=1)
+
+    def _build_pairs(self, row: np.ndarray) -> _Pairs:
+        scene = self.scene
         plate, eye = scene.plate, scene.eye
         px, py = plate.pitch_mm
         ncx, ncy = plate.cells
         t = plate.thickness_mm
-        r_max = plate.max_radius_mm
-        cx, cy = eye.positions_mm[position]
+        cx, cy, _, m, mu, _, _, keep_within = (float(v) for v in row)
+        s_b, s_t, s_d = scene.plate_distance_mm, eye.eye_relief_mm, scene.display_distance_mm
         dt = torch.float64  # geometry in double, stored in the working dtype
         vx, vy = eye.view_directions()
         gy, gx = np.meshgrid(vy, vx, indexing="ij")
         views = torch.as_tensor(np.stack([gx.ravel(), gy.ravel()], 1), dtype=dt,
                                 device=self.device)
-        # Holes whose bottom disk can reach the pupil footprint (bottom face, radius R_b).
-        keep_within = self.pupil_bottom_mm + 2 * r_max + 1e-9
-        tilt_room = 0.0
-        if plate.hole_axis == "chief_ray":
-            half = math.hypot(plate.size_mm[0] / 2 + abs(eye.positions_mm[0][0]),
-                              plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
-            tilt_room = t / 2 * half / self._axis_length
         offsets = None
-        reach = keep_within + tilt_room
         if self.hole_offset_mm is not None:
-            # A displaced hole can come from a cell up to the largest offset farther away.
             offsets = torch.as_tensor(self.hole_offset_mm.reshape(-1, 2), dtype=dt,
                                       device=self.device)
-            reach += float(np.linalg.norm(self.hole_offset_mm, axis=-1).max())
+        reach = keep_within + self._search_extra_mm
         # The window may reach past the plate's edge (masked below); never clamp its size to
         # the plate, which would shift it off the holes on narrow plates.
         nsx = math.floor(2 * reach / px) + 2
@@ -324,8 +450,8 @@ class Renderer:
         parts: list[list[torch.Tensor]] = []
         for start in range(0, views.shape[0], per_chunk):
             v = views[start : start + per_chunk]
-            fx = cx + opt.s_bottom * v[:, :1]
-            fy = cy + opt.s_bottom * v[:, 1:]
+            fx = cx + s_b * v[:, :1]
+            fy = cy + s_b * v[:, 1:]
             rows = torch.ceil((ncy - 1) / 2 - (fy + reach) / py).long() + oy
             cols = torch.ceil((fx - reach) / px + (ncx - 1) / 2).long() + ox
             hx = (cols - (ncx - 1) / 2).to(dt) * px  # hole axis at mid-thickness
@@ -343,17 +469,15 @@ class Renderer:
             tx, ty = hx + t / 2 * ax, hy + t / 2 * ay  # top-face centre
             keep &= (bx - fx) ** 2 + (by - fy) ** 2 < keep_within**2
             # Top-face disk mapped to the bottom face, for this view direction.
-            m = opt.top_to_bottom
-            ctx = fx + m * (tx - cx - opt.s_top * v[:, :1])
-            cty = fy + m * (ty - cy - opt.s_top * v[:, 1:])
+            ctx = fx + m * (tx - cx - s_t * v[:, :1])
+            cty = fy + m * (ty - cy - s_t * v[:, 1:])
             dx, dy = ctx - bx, cty - by
             dist = (dx**2 + dy**2).sqrt()
             # Lens centre midway between the two disks; its offset from the footprint centre.
             lx, ly = (bx + ctx) / 2, (by + cty) / 2
             pupil_off = ((lx - fx) ** 2 + (ly - fy) ** 2).sqrt()
-            mu = opt.window_scale
-            wx = cx + opt.s_display * v[:, :1] + mu * (lx - fx)
-            wy = cy + opt.s_display * v[:, 1:] + mu * (ly - fy)
+            wx = cx + s_d * v[:, :1] + mu * (lx - fx)
+            wy = cy + s_d * v[:, 1:] + mu * (ly - fy)
             gx, gy = self._normalize(wx, wy)
             hole = torch.where(keep, rows.clamp(0, ncy - 1) * ncx + cols.clamp(0, ncx - 1),
                                ncx * ncy)
@@ -379,80 +503,79 @@ class Renderer:
         row = (display.height_mm / 2 - y_mm) / display.pixel_mm[1] - 0.5 + self.pad
         return 2 * col / (width - 1) - 1, 2 * row / (height - 1) - 1
 
-    # -- rendering ----------------------------------------------------------------------------
+    # -- kernel path --------------------------------------------------------------------------
 
-    def render(self, open_fraction: torch.Tensor, display: torch.Tensor, position: int = 0
-               ) -> torch.Tensor:
-        """View (C, ny, nx) through holes of open-area fractions (rows, cols) onto a display
-        (C, H, W) in linear light, from eye position `position` of the scene's eyebox."""
-        return self.render_stack(open_fraction, self.display_stack(display), position)
-
-    def fixed_samples(self, stack: torch.Tensor, position: int = 0) -> torch.Tensor:
-        """For a display that does not change (display mode "target"): its window means at every
-        stack level for every pair of `position`, (L, C, N, S). `render_stack` given these
-        instead of the stack only interpolates between levels: no resampling per iteration."""
-        pairs = self._pair_table(position)
-        levels = stack.shape[2]
-        rows_per_chunk = max(1, self.chunk_pairs // max(1, pairs.hole.shape[1]))
-        out = []
-        with torch.no_grad():
-            for start in range(0, pairs.hole.shape[0], rows_per_chunk):
-                grid = pairs.grid_xy[start : start + rows_per_chunk][None]  # (1, n, S, 2)
-                out.append(torch.stack([
-                    F.grid_sample(stack[:, :, level], grid, mode="bilinear",
-                                  padding_mode="zeros", align_corners=True)[0]
-                    for level in range(levels)
-                ]))  # (L, C, n, S)
-        return torch.cat(out, dim=2)
-
-    def render_stack(self, open_fraction: torch.Tensor, stack: torch.Tensor, position: int = 0
-                     ) -> torch.Tensor:
-        """As `render`, with the display already pre-filtered by `display_stack` (a 5-D stack),
-        or sampled by `fixed_samples` (4-D) for the same position."""
+    def kernel_geometry(self) -> np.ndarray:
+        """The scene's constants for `aperture_fab.kernels`, in GEOMETRY_FIELDS order."""
         scene = self.scene
-        cells = (scene.plate.cells[1], scene.plate.cells[0])
-        if tuple(open_fraction.shape) != cells:
-            raise ValueError(
-                f"open_fraction has shape {tuple(open_fraction.shape)}; the plate has "
-                f"(rows, cols) = {cells}."
-            )
-        a = open_fraction.to(self.device, self.dtype).reshape(-1).clamp_min(0)
-        px, py = scene.plate.pitch_mm
-        # Radius per cell, plus a closed cell for padding.
-        radius = torch.cat([a * (px * py / math.pi), a.new_zeros(1)]).add(_EPS).sqrt()
-        pairs = self._pair_table(position)
-        rows_per_chunk = max(1, self.chunk_pairs // max(1, pairs.hole.shape[1]))
-        out = []
-        for start in range(0, pairs.hole.shape[0], rows_per_chunk):
-            sl = slice(start, start + rows_per_chunk)
-            out.append(self._render_rows(radius, stack, pairs, sl))
-        view = torch.cat(out, dim=1)
-        return view.reshape(view.shape[0], scene.eye.view_pixels[1], scene.eye.view_pixels[0])
+        plate, eye, display = scene.plate, scene.eye, scene.display
+        ex, ey = eye.positions_mm[0]
+        return np.array([
+            plate.cells[0], plate.cells[1], plate.pitch_mm[0], plate.pitch_mm[1],
+            plate.thickness_mm, float(plate.hole_axis == "chief_ray"), ex, ey,
+            self._axis_length, scene.plate_distance_mm, eye.eye_relief_mm,
+            scene.display_distance_mm, display.width_mm / 2, display.height_mm / 2,
+            display.pixel_mm[0], display.pixel_mm[1], self.pad,
+        ], dtype=np.float64)
 
-    def _render_rows(self, radius: torch.Tensor, stack: torch.Tensor, pairs: _Pairs,
-                     sl: slice) -> torch.Tensor:
-        opt = self.optics
-        window_max2 = max(self.window_max_mm**2, _EPS)
-        weight, level = _PairWeights.apply(
-            radius, pairs.hole[sl], pairs.lens_offset_mm[sl], pairs.pupil_offset_mm[sl],
-            abs(opt.top_to_bottom), self.pupil_bottom_mm,
-            opt.window_scale**2 / math.pi / window_max2,
-        )
-        if stack.ndim == 4:  # fixed samples (L, C, N, S): interpolate between levels
-            fixed = stack[:, :, sl]
-            top = fixed.shape[0] - 1
-            place = (level + 1) * (top / 2)
-            low = place.detach().floor().clamp(max=max(top - 1, 0))
-            share = (place - low).unsqueeze(0)
-            index = low.long().unsqueeze(0).expand(fixed.shape[1], -1, -1).unsqueeze(0)
-            below = fixed.gather(0, index)[0]
-            above = fixed.gather(0, (index + 1).clamp(max=top))[0]
-            samples = below + share * (above - below)
-        else:
-            grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
-            samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
-                                    align_corners=True)[0, :, 0]  # (C, n, S)
-        return (samples * weight).sum(-1)
+
+class _KernelView(torch.autograd.Function):
+    """Views (S, C, ny, nx) from hole radii (K,) and a display stack (1, C, L, H, W) through
+    the fused CPU kernels, for the eye states `rows` (`Renderer.state_rows`). States that all
+    focus at infinity share each pair's geometry and display sample."""
+
+    @staticmethod
+    def forward(ctx, radius, stack, renderer, rows):
+        scene = renderer.scene
+        vx, vy = scene.eye.view_directions()
+        offsets = (np.zeros((radius.shape[0], 2)) if renderer.hole_offset_mm is None
+                   else renderer.hole_offset_mm.reshape(-1, 2))
+        channels_last = stack.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
+        extra = renderer._search_extra_mm
+        args: tuple[Any, ...] = (radius.detach().double().numpy(), channels_last, vx, vy, rows,
+                renderer.kernel_geometry(), offsets, extra)
+        out = np.zeros((len(rows), stack.shape[1], len(vy), len(vx)))
+        shared = bool(np.all(rows[:, 3] == 1.0) and np.all(rows[:, 4] == 1.0))
+        # Holes per axis that the union of the states' windows can span, plus slack.
+        spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra))
+        margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
+            np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
+        args = (*args, math.ceil(spread / min(scene.plate.pitch_mm)) + 3, shared, margin)
+        cast(Any, kernels.view_forward)(*args, out)  # numba dispatchers are untyped
+        ctx.args, ctx.dtype = args, stack.dtype
+        return torch.from_numpy(out).to(stack.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_view):
+        radius, channels_last, _, vy = ctx.args[:4]
+        want_stack = ctx.needs_input_grad[1]
+        stack_bytes = channels_last.nbytes if want_stack else 0
+        blocks = max(1, min(len(vy), kernels.thread_count(),
+                            MAX_GRAD_BLOCKS_BYTES // max(1, stack_bytes)))
+        grad_radius = np.zeros((blocks, len(radius)))
+        grad_stack = np.zeros((blocks, *channels_last.shape) if want_stack else (1, 1, 1, 1, 1),
+                              dtype=channels_last.dtype)
+        grad = np.ascontiguousarray(grad_view.detach().double().numpy())
+        cast(Any, kernels.view_backward)(*ctx.args, grad, grad_radius, grad_stack, want_stack)
+        out_radius = torch.from_numpy(grad_radius.sum(0)).to(ctx.dtype)
+        out_stack = None
+        if want_stack:
+            out_stack = torch.from_numpy(grad_stack.sum(0)).permute(3, 0, 1, 2)[None]
+            out_stack = out_stack.to(ctx.dtype).contiguous()
+        return out_radius, out_stack, None, None
+
+
+def render_open_states(scene: Scene, display: torch.Tensor, states: EyeStates,
+                       pupil_samples: int = 128, subpixels: int = 2) -> torch.Tensor:
+    """Views (S, C, ny, nx) of the display with no plate for each eye state (see
+    `render_open`)."""
+    return torch.stack([
+        render_open(scene, display, pupil_samples=pupil_samples, subpixels=subpixels,
+                    offset_mm=tuple(offset), pupil_mm=float(pupil),
+                    focus_diopters=float(diopters))
+        for offset, pupil, diopters in zip(states.offset_mm, states.pupil_mm,
+                                           states.focus_diopters, strict=True)
+    ])
 
 
 def render_open(
@@ -461,14 +584,21 @@ def render_open(
     position: int = 0,
     pupil_samples: int = 128,
     subpixels: int = 2,
+    *,
+    offset_mm: tuple[float, float] | None = None,
+    pupil_mm: float | None = None,
+    focus_diopters: float | None = None,
 ) -> torch.Tensor:
     """View (C, ny, nx) of the display with no plate, by quadrature over the pupil (a sunflower
-    pattern of `pupil_samples` points) and `subpixels`^2 points per view pixel."""
+    pattern of `pupil_samples` points) and `subpixels`^2 points per view pixel, from eyebox
+    position `position`, or from the pupil centre `offset_mm` with `pupil_mm` and
+    `focus_diopters` (each None: the scene's)."""
     eye, disp = scene.eye, scene.display
-    opt = _Optics.of(scene)
+    opt = _Optics.of(scene, None if focus_diopters is None else focus_diopters / 1000.0)
     dev, dtype = display.device, display.dtype
-    cx, cy = eye.positions_mm[position]
-    spread = eye.pupil_mm / 2 * abs(opt.beta_display)
+    cx, cy = eye.positions_mm[position] if offset_mm is None else offset_mm
+    pupil = eye.pupil_mm if pupil_mm is None else pupil_mm
+    spread = pupil / 2 * abs(opt.beta_display)
     n = pupil_samples if spread > 1e-3 * min(disp.pixel_mm) else 1
     k = torch.arange(n, dtype=dtype, device=dev) + 0.5
     golden = math.pi * (3 - math.sqrt(5))

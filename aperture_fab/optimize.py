@@ -1,7 +1,9 @@
 """Optimize the plate's open-area fractions (and the display content) so the view matches targets.
 
 The loss is DESIGN.md's: the MSE between the target and the view scaled by its least-squares gain,
-averaged over targets and eyebox positions (weighted), plus an optional light-efficiency term.
+averaged over targets, plus an optional light-efficiency term, per eye state; each iteration
+draws its eye states afresh from the eye distribution (`aperture_fab.eyes`) and takes their
+expected loss, or the mean over the worst share of them (`tail_share`).
 """
 
 from __future__ import annotations
@@ -17,17 +19,22 @@ import torch
 from tqdm import tqdm
 
 from aperture_fab.baselines import elemental_display, regular_pinholes
-from aperture_fab.model import Renderer, render_open
+from aperture_fab.eyes import EyeStates, distribution_of, iteration_seed
+from aperture_fab.model import Renderer, render_open_states
 from aperture_fab.quantize import MadeSizes
-from aperture_fab.scene import Scene
+from aperture_fab.scene import Eye, Scene
 from aperture_fab.settings import OptimizerSettings
 
 __all__ = [
     "MaskDesign",
     "Interrupted",
     "DivergedError",
+    "combine_states",
     "gain_mse",
+    "gain_mse_states",
+    "position_states",
     "psnr_db",
+    "training_states",
     "resolve_device",
     "optimize",
     "initial_design",
@@ -152,31 +159,65 @@ def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
     return a + (snap - a).detach()
 
 
+def gain_mse_states(views: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """`gain_mse` of each of a batch of views (S, C, ny, nx) against one target: (S,)."""
+    flat = views.reshape(views.shape[0], -1)
+    goal = target.reshape(1, -1)
+    gain = (flat * goal).sum(1, keepdim=True) / ((flat * flat).sum(1, keepdim=True) + 1e-20)
+    return ((gain * flat - goal) ** 2).mean(1)
+
+
+def position_states(eye: Eye) -> EyeStates:
+    """The scene's fixed eyebox positions (eye.positions_mm, eye.weights) as eye states with
+    the nominal pupil and focus."""
+    count = len(eye.positions_mm)
+    diopters = 0.0 if eye.focus_mm is None else 1000.0 / eye.focus_mm
+    return EyeStates(np.asarray(eye.positions_mm, dtype=np.float64),
+                     np.full(count, eye.pupil_mm), np.full(count, diopters),
+                     np.zeros((count, 2)), np.asarray(eye.weights) / sum(eye.weights))
+
+
+def training_states(scene: Scene, settings: OptimizerSettings, iteration: int) -> EyeStates:
+    """The eye states iteration `iteration` is judged at: `settings.eye_states` states drawn
+    afresh from the eye distribution, seeded by (settings.seed, iteration) so that a resumed
+    run draws the same ones; or, when the distribution is a single point, the scene's fixed
+    eyebox positions."""
+    distribution = distribution_of(scene.eye)
+    if distribution.is_point:
+        return position_states(scene.eye)
+    return distribution.sample(settings.eye_states, iteration_seed(settings.seed, iteration))
+
+
+def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: float
+                   ) -> torch.Tensor:
+    """One loss from per-state losses (S,) and weights (S,) summing to 1: the expected loss
+    (tail_share 1), or the mean over the worst tail_share of the weight (a CVaR: the states are
+    taken from the worst down until their weight reaches tail_share, the last one in part)."""
+    if tail_share >= 1:
+        return (losses * weights).sum()
+    order = torch.argsort(losses.detach(), descending=True)
+    w = weights[order]
+    before = torch.cumsum(w, 0) - w
+    taken = torch.minimum(w, (tail_share - before).clamp(min=0))
+    return (losses[order] * taken).sum() / taken.sum()
+
+
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
-                 targets: torch.Tensor, efficiency_weight: float,
-                 fixed: list[list[torch.Tensor]] | None = None) -> torch.Tensor:
-    """DESIGN.md's loss: gain-corrected MSE, weighted over eye positions, averaged over targets,
-    plus efficiency_weight x (1 - light efficiency). fixed: per target and position, display
-    samples from `Renderer.fixed_samples` instead of re-filtering `displays`."""
-    scene = renderer.scene
-    weights = torch.tensor(scene.eye.weights, dtype=renderer.dtype)
-    weights = weights / weights.sum()
-    total = torch.zeros((), dtype=renderer.dtype, device=renderer.device)
+                 targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
+                 tail_share: float = 1.0) -> torch.Tensor:
+    """DESIGN.md's loss: gain-corrected MSE, averaged over targets, per eye state, plus
+    efficiency_weight x (1 - light efficiency); combined over the states by `combine_states`."""
+    per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
-        if fixed is not None:
-            per_position = fixed[t]
-        else:
-            per_position = [renderer.display_stack(displays[t])] * len(weights)
-        for p, w in enumerate(weights.tolist()):
-            view = renderer.render_stack(a, per_position[p], p)
-            loss = gain_mse(view, targets[t])
-            if efficiency_weight > 0:
-                open_view = render_open(scene, displays[t], p,
-                                        pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
-                efficiency = view.mean() / (open_view.mean() + 1e-12)
-                loss = loss + efficiency_weight * (1 - efficiency)
-            total = total + w * loss
-    return total / targets.shape[0]
+        views = renderer.render_states(a, renderer.display_stack(displays[t]), states)
+        per_state = per_state + gain_mse_states(views, targets[t])
+        if efficiency_weight > 0:
+            opens = render_open_states(renderer.scene, displays[t], states,
+                                       pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
+            efficiency = views.mean((1, 2, 3)) / (opens.mean((1, 2, 3)) + 1e-12)
+            per_state = per_state + efficiency_weight * (1 - efficiency)
+    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    return combine_states(per_state / targets.shape[0], weights, tail_share)
 
 
 def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
@@ -256,12 +297,6 @@ def optimize(
         opt = torch.optim.SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
     if state["optimizer"] is not None:
         opt.load_state_dict(state["optimizer"])
-    fixed = None
-    if display_param is None:  # the display shows the targets: sample them once
-        with torch.no_grad():
-            stacks = [renderer.display_stack(d) for d in shown_t]
-            fixed = [[renderer.fixed_samples(s, p) for p in range(len(scene.eye.weights))]
-                     for s in stacks]
 
     def plate(iteration: int) -> torch.Tensor:
         a = lo + (hi - lo) * torch.sigmoid(mask_logits)
@@ -272,7 +307,8 @@ def optimize(
     def loss_fn(iteration: int) -> torch.Tensor:
         displays = shown_t if display_param is None else display_param
         return _design_loss(renderer, plate(iteration), displays, target_t,
-                            settings.efficiency_weight, fixed)
+                            training_states(scene, settings, iteration),
+                            settings.efficiency_weight, settings.tail_share)
 
     def keep_continuous() -> None:
         with torch.no_grad():
@@ -393,7 +429,8 @@ def fit_display(
         for group in opt.param_groups:
             group["lr"] = _lr_at(schedule, iteration)
         opt.zero_grad(set_to_none=True)
-        loss = _design_loss(renderer, a, shown, target_t, 0.0)
+        loss = _design_loss(renderer, a, shown, target_t,
+                            training_states(scene, settings, iteration), 0.0, settings.tail_share)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise DivergedError(f"the display fit's loss became {value} at iteration "

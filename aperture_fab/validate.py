@@ -63,6 +63,7 @@ from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.model import Renderer, render_open
 from aperture_fab.optimize import gain_mse, psnr_db, resolve_device
 from aperture_fab.process import Process
+from aperture_fab.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
 from aperture_fab.scene import Eye, Plate, Scene
 
 __all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
@@ -93,6 +94,8 @@ class ValidationSettings:
         a budget of about retrace.RAY_BUDGET rays, 12 to 256 per pair).
     diffraction: render the diffraction-aware view.
     seed: random seed (random mask, tolerance samples, ray sampling).
+    eye_states: states of the evaluation set over the eye distribution (`robustness`); 0 skips
+        the judgement over the distribution.
     """
 
     tolerance_samples: int = 16
@@ -103,9 +106,10 @@ class ValidationSettings:
     mesh_samples: int | None = None
     diffraction: bool = True
     seed: int = 0
+    eye_states: int = EVALUATION_STATES
 
     def __post_init__(self) -> None:
-        for name in ("tolerance_samples", "mesh_samples", "seed"):
+        for name in ("tolerance_samples", "mesh_samples", "seed", "eye_states"):
             value = getattr(self, name)
             if name == "mesh_samples" and value is None:
                 continue
@@ -144,6 +148,7 @@ class Validation:
     mesh_stderr: (T, C, ny, nx) Monte Carlo standard error of as_built_mesh, or None.
     tolerance: {"samples", "psnr_db": [...], "psnr_percentiles", "threshold_db", "yield"} or None.
     timings_s: seconds per part of the validation.
+    eyes: the part (as_built) and the baselines judged over the eye distribution, or None.
     """
 
     views: dict[str, np.ndarray]
@@ -151,6 +156,7 @@ class Validation:
     mesh_stderr: np.ndarray | None
     tolerance: dict[str, Any] | None
     timings_s: dict[str, float]
+    eyes: EyeQuality | None = None
 
 
 def layout_fractions(layout: HoleLayout, bias_mm: float = 0.0) -> np.ndarray:
@@ -253,6 +259,20 @@ def validate(
         timings["diffraction_s"] = time.perf_counter() - start
 
     metrics = _metrics(scene, views, targets, shown, designed, on_display, names)
+    eyes = None
+    if settings.eye_states > 0:
+        start = time.perf_counter()
+        as_numpy = [d.cpu().double().numpy() for d in shown]
+        eyes = judge_eyes(scene, targets, {
+            "as_built": Variant(as_built, np.stack(as_numpy)),
+            "optimized": Variant(open_fraction, np.stack([d.cpu().double().numpy()
+                                                          for d in designed])),
+            "open": Variant(None, np.stack([d.cpu().double().numpy() for d in on_display])),
+            "regular_pinholes": Variant(pinholes.open_fraction, np.stack([
+                elemental_display(scene, pinholes, t).cpu().double().numpy()
+                for t in target_views])),
+        }, device=device, dtype=dtype, count=settings.eye_states)
+        timings["eye_distribution_s"] = time.perf_counter() - start
     tolerance = None
     if settings.tolerance_samples > 0:
         start = time.perf_counter()
@@ -261,7 +281,7 @@ def validate(
                                        nominal - YIELD_MARGIN_DB if settings.threshold_db is None
                                        else settings.threshold_db, device, dtype)
         timings["tolerance_s"] = time.perf_counter() - start
-    return Validation(views, metrics, mesh_stderr, tolerance, timings)
+    return Validation(views, metrics, mesh_stderr, tolerance, timings, eyes)
 
 
 def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,

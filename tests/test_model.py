@@ -248,26 +248,6 @@ def test_open_display_matches_the_reference(focus):
     assert psnr(model, ref) >= 30.0
 
 
-@pytest.mark.parametrize("axis, thickness", [("straight", 0.0), ("chief_ray", 0.3)])
-def test_fixed_display_samples_render_the_same_view(axis, thickness):
-    """Sampling a fixed display once per pair and interpolating levels equals the trilinear
-    stack sampling, values and gradients."""
-    rng = np.random.default_rng(2)
-    scene = make_scene(thickness=thickness, axis=axis, positions=((0.0, 0.0), (0.8, -0.4)))
-    renderer = Renderer(scene, dtype=torch.float64)
-    display = torch.as_tensor(rng.random((3, 60, 60)))
-    stack = renderer.display_stack(display)
-    for position in (0, 1):
-        a1 = torch.as_tensor(rng.uniform(0, 0.5, (12, 12))).requires_grad_(True)
-        a2 = a1.detach().clone().requires_grad_(True)
-        direct = renderer.render_stack(a1, stack, position)
-        fixed = renderer.render_stack(a2, renderer.fixed_samples(stack, position), position)
-        torch.testing.assert_close(fixed, direct, rtol=1e-10, atol=1e-12)
-        (direct * display[:, :32, :32].mean()).sum().backward()
-        (fixed * display[:, :32, :32].mean()).sum().backward()
-        torch.testing.assert_close(a2.grad, a1.grad, rtol=1e-8, atol=1e-12)
-
-
 def test_narrow_plate_centre_hole_is_seen_centred():
     """A plate narrower than the pupil's footprint: the one open hole on the axis shows up
     centred in the view (the hole search must not slide off the plate)."""

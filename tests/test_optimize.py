@@ -305,14 +305,14 @@ def test_a_nan_target_raises_diverged_error_naming_the_learning_rate(
 def test_a_loss_that_turns_non_finite_mid_run_raises_diverged_error(
         monkeypatch: pytest.MonkeyPatch, bad: float, make_config: MakeConfig) -> None:
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def failing(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
         loss = real(view, target)
         return loss * bad if calls["n"] == 3 else loss
 
-    monkeypatch.setattr(optimize_module, "gain_mse", failing)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", failing)
     with pytest.raises(DivergedError, match=r"iteration 2.*lower the learning rate"):
         run(make_config())
 
@@ -391,20 +391,20 @@ def test_resuming_leaves_the_state_untouched_so_it_can_be_resumed_again(
 def count_calls(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
     """Count the loss evaluations (one per iteration for one target and one eye position)."""
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def counted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
         return real(view, target)
 
-    monkeypatch.setattr(optimize_module, "gain_mse", counted)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", counted)
     return calls
 
 
 def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
     """Make the n-th loss evaluation raise KeyboardInterrupt (as Ctrl-C would)."""
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
@@ -412,7 +412,7 @@ def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
             raise KeyboardInterrupt
         return real(view, target)
 
-    monkeypatch.setattr(optimize_module, "gain_mse", interrupted)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
 
 
 @pytest.mark.parametrize("method", list(RESUMABLE))
@@ -452,3 +452,38 @@ def test_interrupted_state_can_be_interrupted_and_resumed_again(
     calls = count_calls(monkeypatch)
     assert_same_design(run(config, state=second.value.state), whole)
     assert calls["n"] == 12 - 7
+
+
+# --- the eye distribution --------------------------------------------------------------------
+
+
+def test_each_iteration_draws_its_own_eye_states_reproducibly(make_config: MakeConfig) -> None:
+    """States come from (seed, iteration): fresh each iteration, the same on every run."""
+    from aperture_fab.optimize import training_states
+
+    config = make_config("near-eye")
+    scene, settings = config.scene, config.optimizer
+    first, second = (training_states(scene, settings, i) for i in (0, 1))
+    assert len(first) == settings.eye_states == 16
+    assert not np.array_equal(first.offset_mm, second.offset_mm)
+    np.testing.assert_array_equal(training_states(scene, settings, 0).offset_mm, first.offset_mm)
+    point = make_config()  # near-eye-nominal: the scene's fixed positions
+    assert len(training_states(point.scene, point.optimizer, 5)) == 1
+
+
+def test_a_run_over_the_eye_distribution_resumes_exactly(make_config: MakeConfig) -> None:
+    config = make_config("near-eye", **{"optimizer.iterations": 6, "optimizer.eye_states": 4,
+                                        "optimizer.checkpoint_every": 3,
+                                        "optimizer.precision": "float64"})
+    whole = run(config)
+    saved: list[dict[str, Any]] = []
+    run(config, on_checkpoint=saved.append)
+    assert_same_design(run(config, state=saved[0]), whole)
+
+
+def test_tail_share_weights_the_worst_states(make_config: MakeConfig) -> None:
+    """A tail loss (worst 25 % of the states) is at least the expected loss at the start."""
+    settings = {"optimizer.iterations": 1, "optimizer.eye_states": 8}
+    mean = run(make_config("near-eye", **settings)).loss_history[0]
+    tail = run(make_config("near-eye", **settings, **{"optimizer.tail_share": 0.25}))
+    assert tail.loss_history[0] >= mean

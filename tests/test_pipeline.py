@@ -337,7 +337,7 @@ def test_an_unwritable_output_folder_is_refused(tmp_path: Path, marker_png: Path
 def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
     """Make the optimizer's n-th loss evaluation raise KeyboardInterrupt (as Ctrl-C would)."""
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
@@ -345,7 +345,7 @@ def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
             raise KeyboardInterrupt
         return real(view, target)
 
-    monkeypatch.setattr(optimize_module, "gain_mse", interrupted)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
 
 
 @pytest.fixture
@@ -376,13 +376,13 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_result(
     assert tmp_files(out) == []
 
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def counted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
         return real(view, target)
 
-    monkeypatch.setattr(optimize_module, "gain_mse", counted)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", counted)
     result = run_design([marker_png], out, resumable, resume=True, progress=False)
     assert calls["n"] == 10 - 4  # it went on from the checkpoint, not from the start
     assert result.design.loss_history.shape == (10,)

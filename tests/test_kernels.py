@@ -1,0 +1,129 @@
+"""The fused CPU kernels (aperture_fab.kernels) against the torch path (pair tables and
+grid_sample), values and gradients, and a batch of eye states against each state alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_model import make_scene
+
+from aperture_fab.eyes import EyeStates
+from aperture_fab.model import Renderer
+from aperture_fab.optimize import combine_states, gain_mse, gain_mse_states
+
+
+def states(offsets, pupils, diopters) -> EyeStates:
+    count = len(pupils)
+    return EyeStates(np.asarray(offsets, dtype=np.float64), np.asarray(pupils, dtype=np.float64),
+                     np.asarray(diopters, dtype=np.float64), np.zeros((count, 2)),
+                     np.full(count, 1.0 / count))
+
+
+def views_and_grads(renderer: Renderer, a: np.ndarray, display: np.ndarray, batch: EyeStates,
+                    weight: np.ndarray):
+    a_t = torch.as_tensor(a).requires_grad_(True)
+    d_t = torch.as_tensor(display).requires_grad_(True)
+    view = renderer.render_states(a_t, renderer.display_stack(d_t), batch)
+    (view * torch.as_tensor(weight)).sum().backward()
+    return view.detach(), a_t.grad, d_t.grad
+
+
+CASES = {
+    "thin straight": {},
+    "thick chief-ray": {"thickness": 0.3, "axis": "chief_ray"},
+    "thick straight, finite focus": {"thickness": 0.2, "focus": 500.0},
+    "offset eye": {"positions": ((1.2, -0.7),)},
+}
+BATCHES = {
+    "infinity": ([(0.0, 0.0), (0.9, -0.5), (-1.5, 1.0)], [4.0, 3.0, 6.0], [0.0, 0.0, 0.0]),
+    "mixed focus": ([(0.0, 0.0), (0.4, 0.3)], [4.0, 5.0], [0.0, 1.5]),
+}
+
+
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("displaced", [False, True])
+def test_kernels_match_the_torch_path(case, batch_name, displaced):
+    """Same views and gradients (radii and display) from both backends, float64, for states
+    that share their display samples (all at infinity) and states that do not."""
+    rng = np.random.default_rng(3)
+    scene = make_scene(**CASES[case])
+    offsets = rng.normal(0, 0.05, (12, 12, 2)) if displaced else None
+    batch = states(*BATCHES[batch_name])
+    a = rng.uniform(0, 0.6, (12, 12))
+    display = rng.random((3, 60, 60))
+    weight = rng.random((len(batch), 3, 32, 32))
+    got = views_and_grads(Renderer(scene, dtype=torch.float64, backend="kernel",
+                                   hole_offset_mm=offsets), a, display, batch, weight)
+    want = views_and_grads(Renderer(scene, dtype=torch.float64, backend="torch",
+                                    hole_offset_mm=offsets), a, display, batch, weight)
+    assert float(want[0].abs().max()) > 0
+    for g, w in zip(got, want, strict=True):
+        # atol: the torch path pads with closed cells of radius 1e-6 (area ~3e-12).
+        torch.testing.assert_close(g, w, rtol=1e-7, atol=1e-9 * float(w.abs().max()))
+
+
+def test_batched_states_equal_states_rendered_alone():
+    """Rendering a batch of eye states in one pass gives each state's own view, and the
+    expected loss over the batch is the weighted mean of the states' separate losses."""
+    rng = np.random.default_rng(4)
+    scene = make_scene(thickness=0.3, axis="chief_ray")
+    renderer = Renderer(scene, dtype=torch.float64)
+    batch = states([(0.0, 0.0), (1.0, 0.5), (-0.8, -1.1), (0.3, 0.0)], [4.0, 3.2, 5.5, 6.0],
+                   [0.0] * 4)
+    a = torch.as_tensor(rng.uniform(0, 0.6, (12, 12)))
+    stack = renderer.display_stack(torch.as_tensor(rng.random((3, 60, 60))))
+    target = torch.as_tensor(rng.random((3, 32, 32)))
+    together = renderer.render_states(a, stack, batch)
+    alone = [renderer.render_states(a, stack, batch.subset([s]))[0] for s in range(len(batch))]
+    for s, view in enumerate(alone):
+        torch.testing.assert_close(together[s], view, rtol=1e-12, atol=1e-14)
+    losses = gain_mse_states(together, target)
+    separate = torch.stack([gain_mse(view, target) for view in alone])
+    torch.testing.assert_close(losses, separate)
+    weights = torch.tensor(batch.weight)
+    torch.testing.assert_close(combine_states(losses, weights, 1.0), separate.mean())
+
+
+@pytest.mark.parametrize("share", [0.1, 0.3, 0.5, 1.0])
+def test_tail_loss_is_the_mean_of_the_worst_states(share):
+    """combine_states with tail_share q averages the worst q of the weight (a CVaR)."""
+    losses = torch.tensor([0.5, 4.0, 1.0, 3.0, 2.0, 0.1, 0.7, 6.0, 0.2, 0.3], dtype=torch.float64)
+    weights = torch.full((10,), 0.1, dtype=torch.float64)
+    worst = torch.sort(losses, descending=True).values[: round(share * 10)]
+    torch.testing.assert_close(combine_states(losses, weights, share), worst.mean())
+
+
+def test_tail_loss_takes_part_of_a_state():
+    """A tail that ends inside a state's weight takes that share of it."""
+    losses = torch.tensor([1.0, 3.0, 2.0], dtype=torch.float64)
+    weights = torch.tensor([0.5, 0.25, 0.25], dtype=torch.float64)
+    # Worst first: 3 (0.25), 2 (0.25), then 0.1 of the 1.0 state's weight.
+    want = (3.0 * 0.25 + 2.0 * 0.25 + 1.0 * 0.1) / 0.6
+    assert float(combine_states(losses, weights, 0.6)) == pytest.approx(want)
+
+
+def test_kernel_backend_refuses_cuda():
+    with pytest.raises(ValueError, match="runs on the CPU"):
+        Renderer(make_scene(), device="cuda", backend="kernel")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_the_cpu_kernels():
+    """The same scene on CUDA (torch path) and on the CPU (kernels), float32 tolerance."""
+    rng = np.random.default_rng(5)
+    scene = make_scene(thickness=0.3, axis="chief_ray")
+    batch = states(*BATCHES["infinity"])
+    a = rng.uniform(0, 0.6, (12, 12))
+    display = rng.random((3, 60, 60))
+    cpu = Renderer(scene).render_states(torch.as_tensor(a, dtype=torch.float32),
+                                        Renderer(scene).display_stack(
+                                            torch.as_tensor(display, dtype=torch.float32)),
+                                        batch)
+    gpu_renderer = Renderer(scene, device="cuda")
+    gpu = gpu_renderer.render_states(
+        torch.as_tensor(a, dtype=torch.float32, device="cuda"),
+        gpu_renderer.display_stack(torch.as_tensor(display, dtype=torch.float32, device="cuda")),
+        batch)
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-4, atol=1e-6)
