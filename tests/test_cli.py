@@ -256,7 +256,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(
         tmp_path: Path, marker_png: Path, tiny_toml: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
     calls = {"n": 0}
-    real = optimize_module.gain_mse
+    real = optimize_module.gain_mse_states
 
     def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         calls["n"] += 1
@@ -264,7 +264,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(
             raise KeyboardInterrupt
         return real(view, target)
 
-    monkeypatch.setattr(optimize_module, "gain_mse", interrupted)
+    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
     out = tmp_path / "out"
     assert main(design_args(marker_png, tiny_toml, out)) == 130
     err = capsys.readouterr().err
