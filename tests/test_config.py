@@ -305,7 +305,7 @@ def test_near_eye_designs_for_a_moving_eye() -> None:
     eye, opt = resolve().scene.eye, resolve().optimizer
     assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.pupil_mm,
             eye.focus_range_diopters, eye.gaze_deg, eye.rotation_mm) == (
-        (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, (0.0, 0.5), 0.0, 11.0)
+        (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, None, 0.0, 11.0)
     assert (opt.eye_states, opt.tail_share, opt.tracking) == (16, 1.0, "untracked")
 
 
@@ -322,7 +322,7 @@ def test_nominal_presets_are_the_nominal_point(name: str) -> None:
 
 def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -> None:
     near, nominal = to_dict(resolve("near-eye")), to_dict(resolve("near-eye-nominal"))
-    distribution_keys = {"eyebox_mm", "pupil_range_mm", "focus_range_diopters"}
+    distribution_keys = {"eyebox_mm", "pupil_range_mm"}
     for section in SECTION_KEYS:
         for key in SECTION_KEYS[section]:
             if key in distribution_keys or key == "eye_states":
@@ -331,7 +331,7 @@ def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -
                 assert near[section][key] == nominal[section][key], key
     assert "near-eye-nominal" in PRESET_DESCRIPTIONS
     assert "the nominal eye only" in preset_summary("near-eye-nominal")
-    assert "eyebox 4 x 4 mm ellipse, pupil 3-6 mm, focus 0-0.5 D" in preset_summary("near-eye")
+    assert "eyebox 4 x 4 mm ellipse, pupil 3-6 mm" in preset_summary("near-eye")
 
 
 eye_distribution_overrides = st.fixed_dictionaries(
@@ -385,11 +385,13 @@ def test_eye_distribution_from_a_toml_file() -> None:
 
 def test_a_nominal_set_above_its_range_and_outside_it_pins_the_range() -> None:
     # Inside the preset's range: the range stays, the nominal moves.
-    inside = resolve(overrides={"eye.pupil_mm": 5.0, "eye.focus_mm": 2500.0}).scene.eye
+    inside = resolve(overrides={"eye.pupil_mm": 5.0, "eye.focus_mm": 2500.0},
+                     file_dict={"eye": {"focus_range_diopters": [0.0, 0.5]}}).scene.eye
     assert inside.pupil_range_mm == (3.0, 6.0) and inside.focus_range_diopters == (0.0, 0.5)
     assert inside.pupil_mm == 5.0 and inside.focus_mm == 2500.0
     # Outside: the eye is pinned there (each range on its own).
-    pinned = resolve(overrides={"eye.pupil_mm": 8.0}).scene.eye
+    pinned = resolve(overrides={"eye.pupil_mm": 8.0},
+                     file_dict={"eye": {"focus_range_diopters": [0.0, 0.5]}}).scene.eye
     assert pinned.pupil_range_mm is None and pinned.focus_range_diopters == (0.0, 0.5)
     focused = resolve(file_dict={"eye": {"focus_mm": 500.0}}).scene.eye
     assert focused.focus_range_diopters is None and focused.pupil_range_mm == (3.0, 6.0)

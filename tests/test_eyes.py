@@ -320,7 +320,7 @@ def test_presets_distributions() -> None:
     assert not near.is_point
     assert (near.eyebox_mm, near.eyebox_shape, near.pupil_range_mm, near.nominal_pupil_mm,
             near.focus_range_diopters, near.gaze_deg, near.rotation_mm) == (
-        (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, (0.0, 0.5), 0.0, 11.0)
+        (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, (0.0, 0.0), 0.0, 11.0)
     for name in ("near-eye-nominal", "seed"):
         assert distribution_of(resolve(name).scene.eye).is_point, name
 
