@@ -201,6 +201,43 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Width of a column of the eye-distribution table ("28.1 / 30.4 / 31.2").
+EYE_COLUMN = 22
+
+
+def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
+                            validated: bool) -> None:
+    """The design table's lead: PSNR p10 / median / p90 over the eye distribution per variant
+    and target, then the eye-distribution verdict (or why there is none)."""
+    import textwrap
+
+    from aperture_fab.report_html import LEVEL_WORDS, NOT_JUDGED
+
+    headline = metrics.get("eye_distribution")
+    if headline is None:
+        why = NOT_JUDGED if validated else (
+            "Not judged over the eye distribution (--no-validate): the PSNR below is for the "
+            "nominal eye point only.")
+        print(textwrap.fill("eye distribution: " + why, 100, subsequent_indent="  "))
+        return
+    variants = headline["variants"]
+    print(f"PSNR over the eye distribution (dB), p10 / median / p90, {headline['states']} "
+          "states:")
+    print(f"  {'target':<16}" + "".join(f"{v:>{EYE_COLUMN}}" for v in variants))
+    for t, name in enumerate(names):
+        cells = []
+        for values in variants.values():
+            psnr = values["psnr_db"]
+            cell = " / ".join("-" if psnr[k][t] is None else f"{psnr[k][t]:.1f}"
+                              for k in ("p10", "p50", "p90"))
+            cells.append(f"{cell:>{EYE_COLUMN}}")
+        print(f"  {name:<16}" + "".join(cells))
+    verdict = headline.get("verdict")
+    if verdict is not None:
+        print(textwrap.fill(f"eye distribution: {LEVEL_WORDS[verdict['level']]}: "
+                            f"{verdict['text']}", 100, subsequent_indent="  "))
+
+
 def _cmd_design(args: argparse.Namespace) -> int:
     from aperture_fab.optimize import Interrupted
     from aperture_fab.pipeline import output_folder, run_design
@@ -222,11 +259,13 @@ def _cmd_design(args: argparse.Namespace) -> int:
     m = result.metrics
     print(f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
           f"stopped: {result.design.stopped})")
+    _print_eye_distribution(m, result.names, validated=validation is not None)
+    nominal = [v for v in m if v != "eye_distribution"]
     print("PSNR after gain (dB), nominal eye position:")
-    header = f"  {'target':<16}" + "".join(f"{v:>18}" for v in m)
+    header = f"  {'target':<16}" + "".join(f"{v:>18}" for v in nominal)
     print(header)
     for t, name in enumerate(result.names):
-        print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in m))
+        print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in nominal))
     if result.part is not None:
         layout = result.part.layout
         print(f"part: {layout.count} holes, {len(layout.violations)} rule violation(s) resolved; "

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -16,13 +17,18 @@ import numpy as np
 from aperture_fab.images import linear_to_srgb
 from aperture_fab.metrics import gain
 
-__all__ = ["figure_views", "figure_hole_map", "figure_loss", "figure_histogram"]
+__all__ = ["figure_views", "figure_hole_map", "figure_loss", "figure_histogram",
+           "figure_eyebox_map", "figure_sweep", "figure_thumbnails"]
 
 FIGURE_DPI = 100
 #: Width and height of one image panel in figure_views (inches).
 PANEL_INCHES = 2.2
 MAX_PANELS_PER_ROW = 6
 UM_PER_MM = 1000.0
+#: Line styles for the targets of a sweep (colours tell the variants apart).
+TARGET_STYLES = ("-", "--", ":", "-.")
+#: Value labels in the eyebox map's cells up to this many cells per side.
+MAX_LABELLED_CELLS = 9
 
 
 def _figure(width_in: float, height_in: float) -> Any:
@@ -146,4 +152,148 @@ def figure_histogram(values: np.ndarray, threshold: float | None) -> bytes:
         ax.legend()
     ax.set_xlabel("PSNR as built (dB)")
     ax.set_ylabel("samples")
+    return _png(fig)
+
+
+def _finite(array: Any, name: str, ndim: int, *, allow_nan: bool = False) -> np.ndarray:
+    values = np.asarray(array, dtype=np.float64)
+    if values.ndim != ndim or min(values.shape, default=0) == 0:
+        raise ValueError(f"{name} has shape {values.shape}; expected {ndim} non-empty axes.")
+    bad = np.isinf(values) if allow_nan else ~np.isfinite(values)
+    if np.any(bad):
+        raise ValueError(f"{name} holds {'infinite' if allow_nan else 'NaN or infinite'} values.")
+    return values
+
+
+def figure_eyebox_map(psnr_db: np.ndarray, offsets_mm: np.ndarray, eyebox_mm: tuple[float, float],
+                      *, shape: str = "ellipse", centre_mm: tuple[float, float] = (0.0, 0.0),
+                      names: Sequence[str] = ()) -> bytes:
+    """PNG heat map of PSNR (dB) over pupil offsets, one panel per target, the eyebox outlined.
+
+    psnr_db: (T, n, n), row 0 at +y, NaN outside the eyebox (grey). offsets_mm: (n, n, 2) the
+    cell centres, an n x n division of the eyebox's bounding box (eyes.EyeDistribution
+    .eyebox_grid). eyebox_mm: (w, h) full size, at least one of them > 0; shape "ellipse" or
+    "rect"; names: target names for the panel titles.
+    """
+    values = _finite(psnr_db, "eyebox map PSNR", 3, allow_nan=True)
+    offsets = _finite(offsets_mm, "eyebox map offsets", 3)
+    count, n = values.shape[0], values.shape[1]
+    if values.shape[1:] != (n, n) or offsets.shape != (n, n, 2):
+        raise ValueError(f"eyebox map PSNR {values.shape} and offsets {offsets.shape} do not "
+                         "match; expected (T, n, n) and (n, n, 2).")
+    if np.all(np.isnan(values)):
+        raise ValueError("eyebox map PSNR is NaN everywhere: no position inside the eyebox.")
+    w, h = (float(v) for v in eyebox_mm)
+    if not (w > 0 or h > 0):
+        raise ValueError(f"eyebox_mm = {eyebox_mm}: a point has no map; give a size > 0.")
+    cx, cy = centre_mm
+    # A zero-size axis is drawn one cell thick (a cell as wide as the other axis's cells).
+    cell_w, cell_h = (w or h) / n, (h or w) / n
+    half_w, half_h = n * cell_w / 2, n * cell_h / 2
+    import matplotlib as mpl  # _figure checks that matplotlib is there
+    from matplotlib.patches import Ellipse, Rectangle
+
+    fig = _figure(0.6 + 3.6 * count, 3.6)
+    cmap = mpl.colormaps["viridis"].with_extremes(bad="0.85")
+    low, high = float(np.nanmin(values)), float(np.nanmax(values))
+    if high - low < 0.1:
+        low, high = low - 0.05, high + 0.05
+    axes = [fig.add_subplot(1, count, t + 1) for t in range(count)]
+    shown = None
+    for t, ax in enumerate(axes):
+        shown = ax.imshow(np.ma.masked_invalid(values[t]), cmap=cmap, vmin=low, vmax=high,
+                          interpolation="nearest", origin="upper",
+                          extent=(cx - half_w, cx + half_w, cy - half_h, cy + half_h))
+        outline = (Ellipse((cx, cy), w, h) if shape == "ellipse"
+                   else Rectangle((cx - w / 2, cy - h / 2), w, h))
+        outline.set(fill=False, edgecolor="tab:red", linewidth=1.5)
+        ax.add_patch(outline)
+        if n <= MAX_LABELLED_CELLS:
+            middle = (low + high) / 2
+            for i in range(n):
+                for j in range(n):
+                    if np.isfinite(values[t, i, j]):
+                        x, y = offsets[i, j]
+                        ax.text(x if w else cx, y if h else cy, f"{values[t, i, j]:.1f}",
+                                ha="center", va="center", fontsize=7,
+                                color="white" if values[t, i, j] < middle else "black")
+        ax.set_xlabel("pupil offset x (mm)")
+        ax.set_ylabel("pupil offset y (mm)")
+        if len(names) > t:
+            ax.set_title(f"target {names[t]!r}", fontsize=10)
+    fig.colorbar(shown, ax=axes, label="PSNR (dB)")
+    return _png(fig)
+
+
+def figure_sweep(x: np.ndarray, curves: Mapping[str, np.ndarray], *, xlabel: str,
+                 shaded: tuple[float, float], nominal: float | None = None,
+                 names: Sequence[str] = (), title: str = "") -> bytes:
+    """PNG of PSNR (dB) against one eye parameter: one line per variant (colour) and target
+    (line style), the distribution's range shaded (a point range: a dashed line at it).
+
+    x: (m,) the parameter's values. curves: {label: (T, m) PSNR per target}. shaded: (lo, hi)
+    the distribution's range; nominal: the nominal value, marked inside a range. names: target names
+    for the legend when there are several.
+    """
+    xs = _finite(x, "sweep values", 1)
+    if not curves:
+        raise ValueError("figure_sweep got no curves; give {label: (T, m) PSNR}.")
+    fig = _figure(6.4, 3.4)
+    ax = fig.add_subplot()
+    lo, hi = shaded
+    if hi > lo:
+        ax.axvspan(lo, hi, color="0.5", alpha=0.15, label="the distribution's range")
+        if nominal is not None:
+            ax.axvline(nominal, color="0.3", linewidth=0.8, label="nominal")
+    else:  # one value: the nominal one
+        ax.axvline(lo, color="0.5", linestyle="--", label="the distribution (one value)")
+    for k, (label, values) in enumerate(curves.items()):  # colours C0, C1, ...: the cycle
+        ys = _finite(values, f"sweep curve {label!r}", 2)
+        if ys.shape[1] != xs.size:
+            raise ValueError(f"sweep curve {label!r} has {ys.shape[1]} points but x has "
+                             f"{xs.size}.")
+        for t, row in enumerate(ys):
+            suffix = f" ({names[t]})" if len(ys) > 1 and len(names) > t else ""
+            ax.plot(xs, row, color=f"C{k % 10}", marker=".",
+                    linestyle=TARGET_STYLES[t % len(TARGET_STYLES)], label=label + suffix)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("PSNR (dB)")
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.grid(True, alpha=0.3)
+    fig.legend(loc="outside right upper", fontsize=7)
+    return _png(fig)
+
+
+def figure_thumbnails(targets: np.ndarray, views: np.ndarray, offsets_mm: np.ndarray,
+                      psnr_db: np.ndarray, names: Sequence[str] = ()) -> bytes:
+    """PNG of what the eye sees at chosen pupil offsets: one row per target, the target first,
+    then each view labelled with its offset and PSNR.
+
+    targets: (T, C, ny, nx) linear; views: (T, k, C, ny, nx) linear, already scaled (shown
+    clipped to [0, 1]); offsets_mm: (k, 2); psnr_db: (T, k).
+    """
+    images = np.asarray(views, dtype=np.float64)
+    goal = np.asarray(targets, dtype=np.float64)
+    offsets = _finite(offsets_mm, "thumbnail offsets", 2)
+    quality = _finite(psnr_db, "thumbnail PSNR", 2)
+    if images.ndim != 5 or goal.ndim != 4 or images.shape[0] != goal.shape[0]:
+        raise ValueError(f"thumbnails {images.shape} and targets {goal.shape}; expected "
+                         "(T, k, C, ny, nx) and (T, C, ny, nx).")
+    count, k = images.shape[:2]
+    if offsets.shape != (k, 2) or quality.shape != (count, k):
+        raise ValueError(f"thumbnail offsets {offsets.shape} and PSNR {quality.shape}; expected "
+                         f"({k}, 2) and ({count}, {k}).")
+    cols = k + 1
+    fig = _figure(cols * PANEL_INCHES * 0.8, count * (PANEL_INCHES * 0.8 + 0.8))
+    for t in range(count):
+        panels = [(f"target {names[t]!r}" if len(names) > t else "target", goal[t])]
+        panels += [(f"({offsets[j, 0]:+.1f}, {offsets[j, 1]:+.1f}) mm\n{quality[t, j]:.1f} dB",
+                    images[t, j]) for j in range(k)]
+        for j, (label, image) in enumerate(panels):
+            ax = fig.add_subplot(count, cols, t * cols + j + 1)
+            rgb = _as_rgb(image, f"thumbnail {label!r}")
+            ax.imshow(linear_to_srgb(np.clip(rgb, 0.0, 1.0)), interpolation="nearest")
+            ax.set_title(label, fontsize=8)
+            ax.set_axis_off()
     return _png(fig)

@@ -288,6 +288,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
             origin_r, origin_c = _origin(geometry, states, v_x, v_y, extra)
             for s in range(states.shape[0]):
                 keep = states[s, 7]
+                pupil_b = states[s, 2]
+                norm = states[s, 6]
                 r0, r1, fx, fy = _window(geometry, states[s, 0], states[s, 1], keep, v_x, v_y,
                                          extra)
                 for c in range(channels):
@@ -308,15 +310,15 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                         if area <= 0.0:
                             continue
                         if ci0 <= j <= ci1:  # wholly inside the pupil
-                            w = area * states[s, 6]
+                            w = area * norm
                             for c in range(channels):
                                 acc[c] += w * samples[n, c]
                             continue
                         if (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 >= keep * keep:
                             continue
                         po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                        share, _ = _share(states[s, 2], area, po)
-                        w = area * share * states[s, 6]
+                        share, _ = _share(pupil_b, area, po)
+                        w = area * share * norm
                         for c in range(channels):
                             acc[c] += w * samples[n, c]
                 for c in range(channels):
@@ -351,6 +353,8 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                 origin_r, origin_c = _origin(geometry, states, v_x, v_y, extra)
                 for s in range(states.shape[0]):
                     keep = states[s, 7]
+                    pupil_b = states[s, 2]
+                    norm = states[s, 6]
                     r0, r1, fx, fy = _window(geometry, states[s, 0], states[s, 1], keep, v_x,
                                              v_y, extra)
                     for i in range(r0, r1 + 1):
@@ -376,23 +380,23 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                                 dot = 0.0
                                 for c in range(channels):
                                     g = grad_out[s, c, iy, ix]
-                                    g_sample[n, c] += g * area * states[s, 6]
+                                    g_sample[n, c] += g * area * norm
                                     dot += g * samples[n, c]
-                                g_area[n] += dot * states[s, 6]
+                                g_area[n] += dot * norm
                                 continue
                             if (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 >= keep * keep:
                                 continue
                             po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                            share, slope = _share(states[s, 2], area, po)
+                            share, slope = _share(pupil_b, area, po)
                             if slope == 0.0:
                                 continue
-                            w = area * share * states[s, 6]
+                            w = area * share * norm
                             dot = 0.0
                             for c in range(channels):
                                 g = grad_out[s, c, iy, ix]
                                 g_sample[n, c] += g * w
                                 dot += g * samples[n, c]
-                            g_area[n] += dot * slope * states[s, 6]
+                            g_area[n] += dot * slope * norm
                             if not shared:  # the pair is this state's alone: settle it now
                                 _settle(grad_radius, grad_stack, want_stack, b, cache, samples,
                                         slopes, g_sample, g_area, lscale, geometry, i, j, n)

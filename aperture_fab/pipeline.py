@@ -65,7 +65,10 @@ class DesignResult:
     views: {"initial" | "optimized" | "open" | "regular_pinholes": (T, P, C, ny, nx) float64}
         for every target and eyebox position.
     metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position;
-        run_design adds "quantized" and "as_built" when it validates the part.
+        run_design adds "quantized" and "as_built" when it validates the part, and
+        "eye_distribution": the part and the baselines over the eye distribution
+        (report.eye_headline: percentiles per variant and target, and the verdict), or None
+        when validation did not judge it.
     part: the part as made (None when no fabrication settings were given).
     built_displays: (T, C, H, W) display content fitted to the part as made: optimized with the
         snapped plate, or re-fitted to the part when no iteration saw it (None when the display
@@ -78,7 +81,7 @@ class DesignResult:
     names: tuple[str, ...]
     targets: np.ndarray
     views: dict[str, np.ndarray]
-    metrics: dict[str, dict[str, list[float]]]
+    metrics: dict[str, Any]
     part: Part | None = None
     built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -310,6 +313,7 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                 per_target = [checked.metrics[variant][name] for name in result.names]
                 result.metrics[variant] = {key: [m[key] for m in per_target]
                                            for key in ("mse", "psnr_db")}
+            write_summary(folder, result)  # design.json again, with the validated figures
     checkpoint.unlink(missing_ok=True)
     return result
 
@@ -317,10 +321,11 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
 def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
                  settings: ValidationSettings) -> Validation:
     """Validate the part as written (plate.stl re-read from disk) and write report.json,
-    views.npz and report.html."""
+    views.npz and report.html; result.metrics["eye_distribution"] gets the headline over the
+    eye distribution (None when not judged)."""
     from aperture_fab.evidence import assemble
     from aperture_fab.exporters import read_stl
-    from aperture_fab.report import report_json
+    from aperture_fab.report import eye_headline, report_json
 
     if result.part is None:
         raise ValueError("no part to validate: design with fabrication settings first.")
@@ -338,6 +343,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     write_atomic(folder / "views.npz", evidence.views_npz)
     write_atomic(folder / "report.html", evidence.html)
     write_atomic(folder / "report.json", report_json(evidence.report))
+    result.metrics["eye_distribution"] = eye_headline(evidence.report)
     return checked
 
 
@@ -387,6 +393,12 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
             scaled = view * _gain(view, result.targets[t])
             write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
     write_atomic(folder / "loss.png", _loss_plot(d.loss_history))
+    write_summary(folder, result)
+
+
+def write_summary(folder: Path, result: DesignResult) -> None:
+    """design.json: the run's numbers (metrics as they are so far) and its config."""
+    d = result.design
     summary = {
         "schema_version": 1,
         "targets": list(result.names),

@@ -5,7 +5,12 @@ in aperture_fab.figures, the HTML page and its verdicts in aperture_fab.report_h
 
 report.json (`build_report`, checked by `validate_report`, written by `report_json`):
 
-    schema_version  1
+    schema_version  2
+    eye_distribution  the headline: the part and the baselines judged over the eye distribution
+                    (aperture_fab.robustness), or null when not judged (validation.eye_states
+                    = 0); see EYE_DISTRIBUTION below
+    verdicts        [{"topic", "level" (one of LEVELS), "text"}], most important first; the first
+                    is topic EYE_TOPIC (aperture_fab.report_html.verdicts); may be empty
     metrics         {variant: {"per_target": {name: METRICS}, "mean": METRICS}}, variants from
                     REPORT_VARIANTS (any subset, at least one); METRICS = {"mse", "psnr_db",
                     "ssim", "light_efficiency"} (see aperture_fab.metrics), each a number or null
@@ -21,6 +26,24 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
     config          the resolved config (aperture_fab.config.to_dict)
     versions        {package: version}
 
+EYE_DISTRIBUTION (every per-target list in the order of "targets"):
+
+    states          how many eye states were judged (the evaluation set)
+    percentiles     [10, 50, 90]: the percentiles reported (aperture_fab.eyes.percentiles)
+    targets         [target name]
+    distribution    {"centre_mm", "eyebox_mm", "eyebox_shape", "pupil_range_mm",
+                    "focus_range_diopters", "gaze_deg", "rotation_mm"}
+    variants        {variant: {"psnr_db": {"p10", "p50", "p90": [per target]}, "ssim": same,
+                    "nominal_psnr_db": [per target]}}, the part ("as_built") first
+    eyebox_map      {"offsets_mm": n x n x [x, y] (row 0 at +y), "inside": n x n bools,
+                    "psnr_db": {variant: [per target: n x n, null outside the eyebox]}} at the
+                    nominal pupil and focus
+    pupil           {"pupil_mm": [m], "psnr_db": {variant: [per target: [m]]}}, nominal
+                    position and focus
+    focus           {"focus_diopters": [m], "psnr_db": {variant: [per target: [m]]}},
+                    nominal position and pupil
+    thumbnails      {"variant", "offsets_mm": [[x, y]], "psnr_db": [per target: [per offset]]}
+
 Non-finite numbers (NaN, infinity) are written as null: JSON has no NaN, and a reader should see
 "not computed" rather than fail to parse the file. Missing keys raise ValueError naming the key;
 wrong types raise TypeError.
@@ -28,12 +51,14 @@ wrong types raise TypeError.
 
 from __future__ import annotations
 
+import copy
 import datetime
 import io
 import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -44,6 +69,12 @@ from aperture_fab.scene import Scene
 
 __all__ = [
     "SCHEMA_VERSION",
+    "EYE_TOPIC",
+    "EYE_VARIANTS",
+    "EYE_VARIANT_LABELS",
+    "LEVELS",
+    "Verdict",
+    "eye_headline",
     "REPORT_VARIANTS",
     "VARIANT_LABELS",
     "FIGURE_KEYS",
@@ -57,7 +88,7 @@ __all__ = [
     "json_ready",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 REPORT_VARIANTS: tuple[str, ...] = (
     "open", "regular_pinholes", "random", "optimized", "quantized", "as_built", "as_built_mesh",
     "as_built_diffraction",
@@ -73,8 +104,29 @@ VARIANT_LABELS: dict[str, str] = {
     "as_built_mesh": "as built, traced through the written mesh",
     "as_built_diffraction": "as built, with diffraction",
 }
+#: Variants judged over the eye distribution, in the order tables list them: the part first.
+EYE_VARIANTS: tuple[str, ...] = ("as_built", "optimized", "open", "regular_pinholes")
+#: Short names of those variants for the eye-distribution table, figures and terminal.
+EYE_VARIANT_LABELS: dict[str, str] = {
+    "as_built": "as built", "optimized": "optimized", "open": "open display",
+    "regular_pinholes": "regular pinholes",
+}
+#: The topic of the leading verdict: the part over the eye distribution.
+EYE_TOPIC = "eye distribution"
+#: Verdict levels: fail (red), warn (amber), pass (green), info (a finding, no judgement).
+LEVELS: tuple[str, ...] = ("fail", "warn", "pass", "info")
 #: Figures report_html places, and the caption of each.
 FIGURE_KEYS: dict[str, str] = {
+    "eye_map": "PSNR of the as-built part over the eyebox (pupil centre offset x, y; nominal "
+               "pupil and focus); the line is the eyebox, grey cells lie outside it.",
+    "eye_pupil": "PSNR against pupil diameter (nominal position and focus), one line per "
+                 "variant; shaded: the distribution's range of pupils.",
+    "eye_focus": "PSNR against focus in diopters (0 = infinity; nominal position and pupil), "
+                 "one line per variant; shaded: the distribution's range of focus.",
+    "eye_thumbnails": "What the eye sees through the as-built part at chosen pupil offsets "
+                      "(nominal pupil and focus), each scaled by its least-squares gain and "
+                      "labelled with its offset and the PSNR of the view as shown (clipped to "
+                      "the display's range).",
     "views": "The target and what the eye sees through the as-built part, beside each baseline "
              "(each view scaled by its least-squares gain).",
     "hole_map": "Hole diameter of each cell of the plate.",
@@ -120,9 +172,16 @@ _EYE_SPEC: dict[str, Kind] = {
     "fov_deg": "number pair", "view_pixels": "int pair", "positions_mm": "list",
 }
 _TOP_SPEC: dict[str, Kind] = {
-    "schema_version": "int", "metrics": "dict", "fabrication": "dict", "mesh": "dict",
-    "timings_s": "dict", "scene": "dict", "config": "dict", "versions": "dict",
+    "schema_version": "int", "verdicts": "list", "metrics": "dict", "fabrication": "dict",
+    "mesh": "dict", "timings_s": "dict", "scene": "dict", "config": "dict", "versions": "dict",
 }
+_EYE_DISTRIBUTION_SPEC: dict[str, Kind] = {
+    "states": "int", "percentiles": "list", "targets": "list", "distribution": "dict",
+    "variants": "dict", "eyebox_map": "dict", "pupil": "dict", "focus": "dict",
+    "thumbnails": "dict",
+}
+_VERDICT_SPEC: dict[str, Kind] = {"topic": "str", "level": "str", "text": "str"}
+_EYE_PERCENTILE_KEYS = ("p10", "p50", "p90")
 
 
 def _is_number(value: Any) -> bool:
@@ -181,6 +240,13 @@ def validate_report(report: Mapping[str, Any]) -> None:
         raise ValueError(f"report.schema_version = {report['schema_version']}; this code reads "
                          f"version {SCHEMA_VERSION}.")
     _get(report, "tolerance", "")
+    if _get(report, "eye_distribution", "") is not None:
+        _check_eye_distribution(report["eye_distribution"])
+    for i, verdict in enumerate(report["verdicts"]):
+        _check(verdict, _VERDICT_SPEC, f"verdicts[{i}]")
+        if verdict["level"] not in LEVELS:
+            raise ValueError(f"report verdicts[{i}].level = {verdict['level']!r}; allowed: "
+                             f"{', '.join(LEVELS)}.")
     if not report["metrics"]:
         raise ValueError("report.metrics is empty; give at least one variant.")
     for variant, block in report["metrics"].items():
@@ -215,6 +281,81 @@ def validate_report(report: Mapping[str, Any]) -> None:
         if not _is_pair(position, _is_number):
             raise TypeError(f"report scene.eye.positions_mm[{i}] = {position!r} must be [x, y].")
     _check(report["versions"], dict.fromkeys(report["versions"], "str"), "versions")
+
+
+def _check_per_target(values: Any, count: int, where: str, item: str = "number or null"
+                      ) -> None:
+    """A list of one entry per target, each an `item` (or, for item "list", a list)."""
+    if not isinstance(values, (list, tuple)) or len(values) != count:
+        raise TypeError(f"report {where} = {values!r:.80} must be a list of {count} values, one "
+                        "per target.")
+    for i, value in enumerate(values):
+        if not _KIND_CHECKS[item](value):
+            raise TypeError(f"report {where}[{i}] = {value!r:.80} must be a {item}.")
+
+
+def _check_eye_distribution(block: Any) -> None:
+    where = "eye_distribution"
+    _check(block, _EYE_DISTRIBUTION_SPEC, where)
+    targets = block["targets"]
+    if not targets or not all(isinstance(t, str) for t in targets):
+        raise ValueError(f"report {where}.targets = {targets!r:.80} must list the target names.")
+    count = len(targets)
+    if not block["variants"]:
+        raise ValueError(f"report {where}.variants is empty; give at least the part.")
+    for variant, values in block["variants"].items():
+        here = f"{where}.variants.{variant}"
+        _check(values, {"psnr_db": "dict", "ssim": "dict", "nominal_psnr_db": "list"}, here)
+        for metric in ("psnr_db", "ssim"):
+            _check(values[metric], dict.fromkeys(_EYE_PERCENTILE_KEYS, "list"),
+                   f"{here}.{metric}")
+            for key in _EYE_PERCENTILE_KEYS:
+                _check_per_target(values[metric][key], count, f"{here}.{metric}.{key}")
+        _check_per_target(values["nominal_psnr_db"], count, f"{here}.nominal_psnr_db")
+    _check(block["eyebox_map"], {"offsets_mm": "list", "inside": "list", "psnr_db": "dict"},
+           f"{where}.eyebox_map")
+    for variant, values in block["eyebox_map"]["psnr_db"].items():
+        _check_per_target(values, count, f"{where}.eyebox_map.psnr_db.{variant}", "list")
+    for sweep, axis in (("pupil", "pupil_mm"), ("focus", "focus_diopters")):
+        _check(block[sweep], {axis: "list", "psnr_db": "dict"}, f"{where}.{sweep}")
+        for variant, values in block[sweep]["psnr_db"].items():
+            _check_per_target(values, count, f"{where}.{sweep}.psnr_db.{variant}", "list")
+    _check(block["thumbnails"], {"variant": "str", "offsets_mm": "list", "psnr_db": "list"},
+           f"{where}.thumbnails")
+    _check_per_target(block["thumbnails"]["psnr_db"], count, f"{where}.thumbnails.psnr_db",
+                      "list")
+
+
+# ---------------------------------------------------------------------------------------------
+# Verdicts
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One finding of the report: its topic, level (one of LEVELS) and plain-language text."""
+
+    topic: str
+    level: str
+    text: str
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise ValueError(f"verdict level {self.level!r}; allowed: {', '.join(LEVELS)}.")
+
+    def as_dict(self) -> dict[str, str]:
+        return {"topic": self.topic, "level": self.level, "text": self.text}
+
+
+def eye_headline(report: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The eye distribution's numbers without the maps and sweeps, with its verdict: for
+    design.json and the terminal. None when the report did not judge the eye distribution."""
+    block = report.get("eye_distribution")
+    if block is None:
+        return None
+    verdict = next((dict(v) for v in report.get("verdicts", ()) if v["topic"] == EYE_TOPIC),
+                   None)
+    keys = ("states", "percentiles", "targets", "distribution", "variants")
+    return {**{k: copy.deepcopy(block[k]) for k in keys}, "verdict": verdict}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -273,8 +414,15 @@ def build_report(
     scene: Mapping[str, Any],
     config: Mapping[str, Any],
     versions: Mapping[str, str],
+    eye_distribution: Mapping[str, Any] | None = None,
+    verdicts: Sequence[Verdict | Mapping[str, str]] = (),
 ) -> dict[str, Any]:
     """The report.json structure, checked (see the module docstring).
+
+    eye_distribution: the EYE_DISTRIBUTION block (aperture_fab.evidence builds it from
+        robustness.EyeQuality), or None when the eye distribution was not judged.
+    verdicts: Verdicts (or their dicts), most important first; usually added afterwards, since
+        aperture_fab.report_html.verdicts reads the report.
 
     metrics: {variant: {target name: metrics dict (aperture_fab.metrics.metrics)}}; each
         variant's mean over targets is added, and variants are listed in REPORT_VARIANTS order.
@@ -294,6 +442,8 @@ def build_report(
         blocks[variant] = {"per_target": per_target, "mean": mean}
     report = json_ready({
         "schema_version": SCHEMA_VERSION,
+        "eye_distribution": eye_distribution,
+        "verdicts": [v.as_dict() if isinstance(v, Verdict) else v for v in verdicts],
         "metrics": blocks,
         "fabrication": fabrication,
         "mesh": mesh,

@@ -105,16 +105,32 @@ def test_design_writes_outputs_and_prints_the_psnr_table(
     assert not list(folder.glob(".*.tmp"))
     assert not (folder / "checkpoint.pt").exists()
 
-    printed = capsys.readouterr().out
-    assert "PSNR" in printed
-    header = next(line for line in printed.splitlines() if "regular_pinholes" in line)
+    lines = capsys.readouterr().out.splitlines()
+    report = json.loads((folder / "report.json").read_text())
+    # The table leads with the eye distribution, its verdict under it, then the nominal table.
+    eyes = report["eye_distribution"]
+    assert lines[1] == (f"PSNR over the eye distribution (dB), p10 / median / p90, "
+                        f"{eyes['states']} states:")
+    assert lines[2].split() == ["target", "as_built", "optimized", "open", "regular_pinholes"]
+    cells = lines[3].split()
+    assert cells[0] == "marker"
+    assert " ".join(cells[1:]) == " ".join(
+        " / ".join(f"{values['psnr_db'][k][0]:.1f}" for k in ("p10", "p50", "p90"))
+        for values in eyes["variants"].values())
+    level = report["verdicts"][0]["level"]
+    assert lines[4].startswith(f"eye distribution: {level.upper()}: Over the eye distribution")
+    nominal = lines.index("PSNR after gain (dB), nominal eye position:")
+    assert nominal > 4
+    header = lines[nominal + 1]
     assert header.split()[1:] == [*VARIANTS, "quantized", "as_built"]
-    row = next(line for line in printed.splitlines() if line.split()[:1] == ["marker"])
+    row = lines[nominal + 2]
+    assert row.split()[0] == "marker"
     shown = [float(x) for x in row.split()[1:]]
     summary = json.loads((folder / "design.json").read_text())
     assert summary["iterations"] == 8
+    assert summary["metrics"]["eye_distribution"]["verdict"] == report["verdicts"][0]
+    assert summary["metrics"]["eye_distribution"]["variants"] == eyes["variants"]
     expected = [summary["metrics"][v]["psnr_db"][0] for v in VARIANTS]
-    report = json.loads((folder / "report.json").read_text())
     expected += [report["metrics"][v]["per_target"]["marker"]["psnr_db"]
                  for v in ("quantized", "as_built")]
     np.testing.assert_allclose(shown, expected, atol=0.006)

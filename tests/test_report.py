@@ -22,7 +22,15 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from aperture_fab.config import to_dict
-from aperture_fab.figures import figure_histogram, figure_hole_map, figure_loss, figure_views
+from aperture_fab.figures import (
+    figure_eyebox_map,
+    figure_histogram,
+    figure_hole_map,
+    figure_loss,
+    figure_sweep,
+    figure_thumbnails,
+    figure_views,
+)
 from aperture_fab.metrics import METRIC_KEYS
 from aperture_fab.report import (
     FIGURE_KEYS,
@@ -49,12 +57,50 @@ def metric(psnr: float, offset: float = 0.0) -> dict[str, Any]:
             "ssim": 0.9 + offset / 100, "light_efficiency": np.float32(0.125)}
 
 
+#: 10th-percentile PSNR (dB) over the eye distribution by variant; median and 90th sit 2 and
+#: 3 dB above it.
+EYE_P10 = {"as_built": 24.0, "optimized": 25.0, "open": 20.5, "regular_pinholes": 19.0}
+
+
+def eye_block(targets: tuple[str, ...] = TARGETS) -> dict[str, Any]:
+    """A hand-written report "eye_distribution" block (3 x 3 map, 3-point sweeps)."""
+    count = len(targets)
+
+    def per_target(value: float) -> list[float]:
+        return [np.float64(value)] * count
+
+    inside = np.array([[False, True, False], [True, True, True], [False, True, False]])
+    grid = np.where(inside, 22.0, np.nan)
+    return {
+        "states": 32, "percentiles": [10, 50, 90], "targets": list(targets),
+        "distribution": {"centre_mm": [0.0, 0.0], "eyebox_mm": [4.0, 4.0],
+                         "eyebox_shape": "ellipse", "pupil_range_mm": [3.0, 6.0],
+                         "focus_range_diopters": [0.0, 0.5], "gaze_deg": 0.0,
+                         "rotation_mm": 11.0},
+        "variants": {v: {"psnr_db": {"p10": per_target(p), "p50": per_target(p + 2),
+                                     "p90": per_target(p + 3)},
+                         "ssim": {"p10": per_target(0.8), "p50": per_target(0.85),
+                                  "p90": per_target(0.9)},
+                         "nominal_psnr_db": per_target(p + 4)}
+                     for v, p in EYE_P10.items()},
+        "eyebox_map": {"offsets_mm": np.stack(np.meshgrid([-1.3, 0, 1.3], [1.3, 0, -1.3]), -1),
+                       "inside": inside, "psnr_db": {"as_built": np.stack([grid] * count)}},
+        "pupil": {"pupil_mm": [3.0, 4.5, 6.0],
+                  "psnr_db": {v: [[p, p, p]] * count for v, p in EYE_P10.items()}},
+        "focus": {"focus_diopters": [0.0, 0.25, 0.5],
+                  "psnr_db": {v: [[p, p, p]] * count for v, p in EYE_P10.items()}},
+        "thumbnails": {"variant": "as_built", "offsets_mm": [[0.0, 0.0], [1.0, 0.0]],
+                       "psnr_db": [[25.0, 23.0]] * count},
+    }
+
+
 def complete_inputs(targets: tuple[str, ...] = TARGETS) -> dict[str, Any]:
     """Every input of build_report, as the pipeline would give them (numpy scalars included).
     The two targets sit +-0.5 dB around PSNR, so each variant's mean PSNR is PSNR[variant]."""
     offsets = np.linspace(-0.5, 0.5, len(targets)) if len(targets) > 1 else [0.0]
     config = tiny_config()
     return {
+        "eye_distribution": eye_block(targets),
         "metrics": {v: {t: metric(p, float(o)) for t, o in zip(targets, offsets, strict=True)}
                     for v, p in PSNR.items()},
         "fabrication": {"process": "resin", "holes": 240, "smallest_hole_diameter_mm": 0.08,
@@ -91,7 +137,11 @@ def png_size(data: bytes) -> tuple[int, int]:
 
 
 def test_build_report_structure(report: dict[str, Any]) -> None:
-    assert report["schema_version"] == SCHEMA_VERSION == 1
+    assert report["schema_version"] == SCHEMA_VERSION == 2
+    assert list(report)[:4] == ["schema_version", "eye_distribution", "verdicts", "metrics"]
+    eyes = report["eye_distribution"]
+    assert eyes["eyebox_map"]["psnr_db"]["as_built"][0][0] == [None, 22.0, None]  # NaN: null
+    assert eyes["eyebox_map"]["inside"][1] == [True, True, True]
     assert list(report["metrics"]) == list(REPORT_VARIANTS)
     for variant, block in report["metrics"].items():
         assert set(block["per_target"]) == set(TARGETS)
@@ -126,7 +176,7 @@ def test_nan_becomes_null_and_mean_is_null() -> None:
 def test_json_round_trip(report: dict[str, Any]) -> None:
     text = report_json(report)
     assert json.loads(text) == report
-    assert text.startswith('{\n  "schema_version": 1,')
+    assert text.startswith('{\n  "schema_version": 2,\n  "eye_distribution": {')
 
 
 @settings(max_examples=30, deadline=None)
@@ -145,8 +195,17 @@ def test_json_round_trip_any_metric_values(values: list[float]) -> None:
 
 #: Every key the schema requires, as a path into the report.
 REQUIRED = [
-    ("schema_version",), ("metrics",), ("fabrication",), ("mesh",), ("tolerance",),
-    ("timings_s",), ("scene",), ("config",), ("versions",),
+    ("schema_version",), ("eye_distribution",), ("verdicts",), ("metrics",), ("fabrication",),
+    ("mesh",), ("tolerance",), ("timings_s",), ("scene",), ("config",), ("versions",),
+    *[("eye_distribution", k) for k in ("states", "percentiles", "targets", "distribution",
+                                         "variants", "eyebox_map", "pupil", "focus",
+                                         "thumbnails")],
+    *[("eye_distribution", "variants", "open", k) for k in ("psnr_db", "ssim",
+                                                            "nominal_psnr_db")],
+    *[("eye_distribution", "variants", "as_built", "psnr_db", k) for k in ("p10", "p50", "p90")],
+    ("eye_distribution", "eyebox_map", "inside"), ("eye_distribution", "pupil", "pupil_mm"),
+    ("eye_distribution", "focus", "focus_diopters"),
+    ("eye_distribution", "thumbnails", "offsets_mm"),
     ("metrics", "as_built", "per_target"), ("metrics", "as_built", "mean"),
     *[("metrics", "open", "per_target", "grid", k) for k in METRIC_KEYS],
     *[("metrics", "quantized", "mean", k) for k in METRIC_KEYS],
@@ -191,6 +250,11 @@ def test_each_missing_key_raises(report: dict[str, Any], path: tuple[Any, ...]) 
         (("tolerance",), [1]),
         (("metrics", "open", "per_target"), [1]),
         (("metrics", "open", "per_target", "grid"), 0.5),
+        (("eye_distribution", "variants", "open", "psnr_db", "p10"), [20.0]),  # one of two
+        (("eye_distribution", "variants", "open", "nominal_psnr_db"), [20.0, "x"]),
+        (("eye_distribution", "pupil", "psnr_db", "open"), [1.0, 2.0]),
+        (("eye_distribution", "states"), 3.5),
+        (("verdicts",), {}),
     ],
 )
 def test_wrong_types_raise(report: dict[str, Any], path: tuple[Any, ...], value: Any) -> None:
@@ -205,8 +269,13 @@ def test_wrong_types_raise(report: dict[str, Any], path: tuple[Any, ...], value:
 
 def test_other_invalid_reports(report: dict[str, Any]) -> None:
     validate_report({**report, "tolerance": None})  # not computed is allowed
+    validate_report({**report, "eye_distribution": None})  # not judged is allowed
+    eyes = report["eye_distribution"]
     changes: list[tuple[dict[str, Any], str]] = [
-        ({"schema_version": 2}, "schema_version"),
+        ({"schema_version": 1}, "schema_version"),
+        ({"eye_distribution": {**eyes, "variants": {}}}, "variants is empty"),
+        ({"eye_distribution": {**eyes, "targets": []}}, "target names"),
+        ({"verdicts": [{"topic": "x", "level": "red", "text": "t"}]}, "level"),
         ({"metrics": {}}, "metrics is empty"),
         ({"metrics": {"ideal": report["metrics"]["open"]}}, "not a known variant"),
         ({"metrics": {"open": {"per_target": {}, "mean": {}}}}, "per_target is empty"),
@@ -281,6 +350,21 @@ def test_figures_are_pngs() -> None:
     assert png_size(figure_loss(np.array([0.5, 0.0, -0.1])))  # not log-scalable: linear axis
     assert png_size(figure_histogram(rng.normal(30, 2, 64), 25.0))
     assert png_size(figure_histogram(np.array([30.0]), None))
+    block = eye_block()
+    offsets = np.asarray(block["eyebox_map"]["offsets_mm"])
+    grid = np.asarray(block["eyebox_map"]["psnr_db"]["as_built"])
+    one = png_size(figure_eyebox_map(grid[:1], offsets, (4.0, 4.0)))
+    assert png_size(figure_eyebox_map(grid, offsets, (4.0, 4.0), shape="rect",
+                                      names=TARGETS))[0] > one[0]  # a panel per target
+    assert png_size(figure_eyebox_map(grid, offsets, (4.0, 0.0)))  # a line of positions
+    curves = {v: rng.normal(p, 1, (2, 5)) for v, p in EYE_P10.items()}
+    assert png_size(figure_sweep(np.linspace(3, 6, 5), curves, xlabel="pupil (mm)",
+                                 shaded=(3.0, 6.0), nominal=4.0, names=TARGETS))
+    assert png_size(figure_sweep(np.linspace(0, 2, 5), curves, xlabel="focus (D)",
+                                 shaded=(0.0, 0.0)))  # a point range: a line, no shading
+    views = rng.uniform(0, 1, (2, 3, 1, 8, 8))
+    assert png_size(figure_thumbnails(views[:, 0], views, np.zeros((3, 2)), np.ones((2, 3)),
+                                      TARGETS))
 
 
 def test_figure_views_scales_by_gain() -> None:
@@ -314,27 +398,55 @@ def test_figure_errors() -> None:
         figure_loss(np.array([]))
     with pytest.raises(ValueError, match="finite"):
         figure_histogram(np.array([np.nan]), 25.0)
+    offsets = np.zeros((3, 3, 2))
+    with pytest.raises(ValueError, match="NaN everywhere"):
+        figure_eyebox_map(np.full((1, 3, 3), np.nan), offsets, (4.0, 4.0))
+    with pytest.raises(ValueError, match="a point has no map"):
+        figure_eyebox_map(np.ones((1, 3, 3)), offsets, (0.0, 0.0))
+    with pytest.raises(ValueError, match="do not match"):
+        figure_eyebox_map(np.ones((1, 3, 3)), np.zeros((2, 2, 2)), (4.0, 4.0))
+    with pytest.raises(ValueError, match="no curves"):
+        figure_sweep(np.arange(3.0), {}, xlabel="x", shaded=(0.0, 1.0))
+    with pytest.raises(ValueError, match="3 points but x has 4"):
+        figure_sweep(np.arange(4.0), {"a": np.ones((1, 3))}, xlabel="x", shaded=(0.0, 1.0))
+    with pytest.raises(ValueError, match="expected"):
+        figure_thumbnails(np.ones((1, 1, 4, 4)), np.ones((1, 2, 1, 4, 4)), np.zeros((3, 2)),
+                          np.ones((1, 2)))
 
 
 # ---------------------------------------------------------------------------------------------
 # Verdicts
 
 
+def texts(report: dict[str, Any], *args: Any) -> list[str]:
+    return [v.text for v in verdicts(report, *args)]
+
+
 def test_verdicts_hand_written(report: dict[str, Any]) -> None:
-    lines = verdicts(report, diffraction_blur_px=1.34)
-    assert lines[0] == ("As built, the view scores 31.2 dB PSNR (SSIM 0.90), 9.8 dB better than "
-                        "the open display and 6.1 dB better than a regular pinhole array.")
-    assert lines[1] == "Quantization and fabrication cost 0.6 dB."
+    found = verdicts(report, diffraction_blur_px=1.34)
+    lines = [v.text for v in found]
+    # The eye distribution leads, the tolerance yield follows, then the nominal eye point.
+    assert [v.topic for v in found[:3]] == ["eye distribution", "tolerance", "nominal"]
+    assert found[0].level == "pass"
+    assert lines[0].startswith(
+        "Over the eye distribution (32 states: eyebox 4 x 4 mm ellipse, pupil 3 to 6 mm, focus "
+        "0 to 0.5 D), the part as built scores 24.0 dB PSNR at the 10th percentile for target "
+        "'letter' (median 26.0, 90th 27.0; 28.0 at the nominal eye point), against 20.5 dB for "
+        "the open display (+3.5 dB) and 19.0 dB for the regular pinhole array (+5.0 dB).")
+    assert lines[1].startswith("Yield at 25.0 dB over 64 tolerance samples: 92 %.")
+    assert lines[2] == ("At the nominal eye point, as built, the view scores 31.2 dB PSNR (SSIM "
+                        "0.90), 9.8 dB better than the open display and 6.1 dB better than a "
+                        "regular pinhole array.")
+    assert lines[3] == "Quantization and fabrication cost 0.6 dB."
     assert "The eye sees 12 % of the light of the open display." in lines
     assert ("Traced through the written mesh (the holes as drawn), the view scores 31.1 dB "
             "(-0.4 dB from the hole layout's).") in lines
     assert "Holes of 0.080 mm: diffraction blurs them by about 1.3 view pixels." in lines
-    assert any(line.startswith("Yield at 25.0 dB over 64 tolerance samples: 92 %.")
-               for line in lines)
     assert any(line.startswith("2 fabrication rule violations of the resin process")
                for line in lines)
     assert "The mesh is watertight, genus 240 (one per hole), 10000 triangles." in lines
-    assert not any("diffraction blurs" in line for line in verdicts(report))
+    assert not any("diffraction blurs" in line for line in texts(report))
+    assert all(v.level == "info" for v in found[1:])
 
 
 def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]) -> None:
@@ -344,15 +456,20 @@ def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]
     partial["metrics"]["open"]["mean"]["psnr_db"] = 40.0
     partial["metrics"]["optimized"]["mean"]["psnr_db"] = 31.0
     partial["tolerance"] = None
+    partial["eye_distribution"] = None
     partial["fabrication"]["violations"] = []
     partial["mesh"]["watertight"] = False
-    lines = verdicts(partial)
-    assert lines[0] == ("After quantization, the view scores 31.5 dB PSNR (SSIM 0.90), 8.5 dB "
-                        "worse than the open display.")
-    assert lines[1] == ("Quantization cost nothing: the view is 0.5 dB better than the optimized "
+    found = verdicts(partial)
+    lines = [v.text for v in found]
+    assert found[0].topic == "eye distribution" and found[0].level == "info"
+    assert lines[0].startswith("Not judged over the eye distribution (validation.eye_states = "
+                               "0): every figure below is for the nominal eye point only")
+    assert lines[1] == ("At the nominal eye point, after quantization, the view scores 31.5 dB "
+                        "PSNR (SSIM 0.90), 8.5 dB worse than the open display.")
+    assert lines[2] == ("Quantization cost nothing: the view is 0.5 dB better than the optimized "
                         "design's.")
     assert "The 240 holes meet every rule of the resin process." in lines
-    assert any("NOT watertight" in line for line in lines)
+    assert [v.level for v in found if "NOT watertight" in v.text] == ["fail"]
     assert not any("Yield" in line or "mesh, the view" in line for line in lines)
 
 
@@ -367,6 +484,7 @@ class PageParser(HTMLParser):
         super().__init__()
         self.headings: list[str] = []
         self.images: list[str] = []
+        self.image_ids: list[str] = []
         self.urls: list[str] = []
         self.tags: set[str] = set()
         self._heading: list[str] | None = None
@@ -380,6 +498,8 @@ class PageParser(HTMLParser):
                 self.urls.append(value or "")
             if tag == "img" and name == "src":
                 self.images.append(value or "")
+            if tag == "img" and name == "id":
+                self.image_ids.append(value or "")
 
     def handle_endtag(self, tag: str) -> None:
         if tag in ("h2", "h3") and self._heading is not None:
@@ -395,7 +515,16 @@ def all_figures() -> dict[str, bytes]:
     rng = np.random.default_rng(4)
     target = rng.uniform(0, 1, (3, 16, 16))
     views = figure_views([("target", target), ("as built", 0.2 * target)], "views")
-    return {"views": views, "hole_map": figure_hole_map(rng.uniform(0, 0.1, (8, 8)), (0.25, 0.25)),
+    block = eye_block(("letter",))
+    sweep = figure_sweep(np.arange(3.0), {"as built": np.ones((1, 3))}, xlabel="x",
+                         shaded=(0.0, 1.0))
+    return {"eye_map": figure_eyebox_map(np.asarray(block["eyebox_map"]["psnr_db"]["as_built"]),
+                                         np.asarray(block["eyebox_map"]["offsets_mm"]),
+                                         (4.0, 4.0)),
+            "eye_pupil": sweep, "eye_focus": figure_loss(np.geomspace(1, 1e-2, 5)),
+            "eye_thumbnails": figure_thumbnails(target[None], target[None, None],
+                                                np.zeros((1, 2)), np.ones((1, 1))),
+            "views": views, "hole_map": figure_hole_map(rng.uniform(0, 0.1, (8, 8)), (0.25, 0.25)),
             "display": figure_views([("display", target)], "display", gain_to_first=False),
             "loss": figure_loss(np.geomspace(1, 1e-2, 20)), "eyebox": views,
             "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0)}
@@ -430,6 +559,10 @@ def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
     assert all(u.startswith(("data:image/png;base64,", "#")) for u in parser.urls)
     assert "http://" not in page and "https://" not in page
     assert "Quantization and fabrication cost 0.6 dB." in page
+    # the eye distribution leads: its section and figures come first
+    assert parser.headings[0] == "Over the eye distribution"
+    assert parser.image_ids[:4] == ["fig-eye_map", "fig-eye_pupil", "fig-eye_focus",
+                                    "fig-eye_thumbnails"]
 
 
 def test_html_escapes_names(evil_report: dict[str, Any]) -> None:

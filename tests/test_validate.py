@@ -79,6 +79,12 @@ def test_report_json_has_every_variant_and_measured_values(validated):
     for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
         assert report["timings_s"][stage] >= 0, stage
     assert report["scene"]["plate"]["cells"] == [16, 16]
+    # the headline: the part and the baselines over the eye distribution, its verdict first
+    eyes = report["eye_distribution"]
+    assert list(eyes["variants"]) == ["as_built", "optimized", "open", "regular_pinholes"]
+    assert eyes["states"] == 32 and eyes["targets"] == ["t"]
+    assert report["verdicts"][0]["topic"] == "eye distribution"
+    assert report["verdicts"][0]["level"] in ("fail", "warn", "pass")
 
 
 def test_views_archive_and_html(validated):
