@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import datetime
 import difflib
+import math
 import re
 import tomllib
 from collections.abc import Mapping
@@ -332,7 +333,15 @@ def _convert(layers: _Layers, key: str) -> Any:
     raise AssertionError(f"no converter for {key}")  # SECTION_KEYS and the sets above disagree
 
 
-def _build(cls: type, kwargs: dict[str, Any], layers: _Layers) -> Any:
+def eyebox_margin_mm(eyebox_mm: tuple[float, float], gaze_deg: float, rotation_mm: float
+                     ) -> tuple[float, float]:
+    """How far (x, y) mm the pupil centre moves off its nominal position: half the eyebox plus
+    the largest gaze shift."""
+    shift = rotation_mm * math.sin(math.radians(gaze_deg))
+    return (eyebox_mm[0] / 2 + shift, eyebox_mm[1] / 2 + shift)
+
+
+def _build(cls: Any, kwargs: dict[str, Any], layers: _Layers) -> Any:
     """cls(**kwargs), with any error it raises extended by where the keys it names came from."""
     try:
         return cls(**kwargs)
@@ -422,9 +431,6 @@ def resolve(
     display = _build(Display, _section(layers, "display"), layers)
     plate = _build(Plate, _section(layers, "plate"), layers)
     eye_args = _section(layers, "eye")
-    if eye_args["fov_deg"] == DISPLAY_FOV:
-        distance_mm = eye_args["eye_relief_mm"] + plate.thickness_mm + plate.gap_mm
-        eye_args["fov_deg"] = display_fov_deg(display, distance_mm)
     # Positions set in a higher layer than the weights get equal weights (the preset's single
     # weight cannot fit a new eyebox).
     n_positions = len(eye_args["positions_mm"])
@@ -432,6 +438,20 @@ def resolve(
             and layers.sources["eye.weights"][0] < layers.sources["eye.positions_mm"][0]):
         eye_args["weights"] = (1.0,) * n_positions
     _pin_ranges(eye_args, layers)
+    if eye_args["fov_deg"] == DISPLAY_FOV:
+        distance_mm = eye_args["eye_relief_mm"] + plate.thickness_mm + plate.gap_mm
+        # Check the eye's own values first (their messages are the clearer ones), then take
+        # the field the display covers from every pupil position of the eyebox.
+        _build(Eye, {**eye_args, "fov_deg": display_fov_deg(display, distance_mm)}, layers)
+        margin = eyebox_margin_mm(eye_args["eyebox_mm"], eye_args["gaze_deg"],
+                                  eye_args["rotation_mm"])
+        try:
+            eye_args["fov_deg"] = display_fov_deg(display, distance_mm, margin)
+        except ValueError as err:
+            raise ValueError(
+                f"eye.eyebox_mm = {list(eye_args['eyebox_mm'])} and eye.gaze_deg = "
+                f"{eye_args['gaze_deg']:g} ({layers.where('eye.eyebox_mm')}) with "
+                f'eye.fov_deg = "display": {err}') from err
     eye = _build(Eye, eye_args, layers)
     scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
     optimizer = _build(OptimizerSettings, _section(layers, "optimizer"), layers)

@@ -24,10 +24,13 @@ Why the "near-eye" numbers (the default):
   part designed over the eyebox, 33.6 to 33.2 dB at the nominal point for a nominal-point
   part; states at one focus also share their display samples in the renderer, so sampling
   focus costs several times more; focus_range_diopters = [0, 0.5] adds it), no gaze rotation
-  (the field is 52 deg and viewed mostly straight through; gaze_deg > 0 adds it with the
+  (the field is 43 deg and viewed mostly straight through; gaze_deg > 0 adds it with the
   eye's centre of rotation 11 mm behind the pupil);
-- view 128 x 128 over the field the display subtends (about 52 deg): about 0.4 deg per view
-  pixel, finer than the geometric blur of a hole (about 2r / h ~ 0.6 deg), so the model resolves it;
+- view 128 x 128 over the field the display covers from every pupil centre of the eyebox
+  (43 deg; 52 deg from the nominal point alone: an eye 2 mm off the axis would see past the
+  display's edge over the outer 5 deg, which no plate or display content can fix): about
+  0.34 deg per view pixel, finer than the geometric blur of a hole (about 2r / h ~ 0.6 deg), so
+  the model resolves it;
 - Adam at 0.05 from a regular pinhole array, 150 iterations: 90 free, then 60 that see the
   holes the process makes (quantize_share 0.4), each phase with its own cosine decay, stopping
   a phase after 60 iterations without progress. The whole design job (optimize, build, export,
@@ -229,7 +232,10 @@ def preset_summary(name: str) -> str:
     view_x, view_y = eye["view_pixels"]
     distance_mm = eye["eye_relief_mm"] + plate["thickness_mm"] + plate["gap_mm"]
     if eye["fov_deg"] == "display":
-        fov_x, fov_y = display_fov_deg(display, distance_mm)
+        from aperture_fab.config import eyebox_margin_mm
+
+        margin = eyebox_margin_mm(tuple(eye["eyebox_mm"]), eye["gaze_deg"], eye["rotation_mm"])
+        fov_x, fov_y = display_fov_deg(display, distance_mm, margin)
         fov = f"the display's field, {fov_x:.1f} x {fov_y:.1f} deg"
     else:
         fov_x, fov_y = eye["fov_deg"]

@@ -271,12 +271,22 @@ class Eye:
         return (2 * tx / self.view_pixels[0], 2 * ty / self.view_pixels[1])
 
 
-def display_fov_deg(display: Display, distance_mm: float) -> tuple[float, float]:
-    """Full field of view (x, y) in degrees that the display subtends from the axis."""
-    return (
-        math.degrees(2 * math.atan(display.width_mm / 2 / distance_mm)),
-        math.degrees(2 * math.atan(display.height_mm / 2 / distance_mm)),
-    )
+def display_fov_deg(display: Display, distance_mm: float,
+                    margin_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float]:
+    """Full field of view (x, y) in degrees that the display subtends from every pupil centre
+    within margin_mm (x, y) of the axis: from the axis when the margin is 0. An eye that moves
+    across an eyebox sees the display across this whole field from every position in it."""
+    halves = []
+    for size, margin, axis in ((display.width_mm, margin_mm[0], "width"),
+                               (display.height_mm, margin_mm[1], "height")):
+        if margin >= size / 2:
+            raise ValueError(
+                f"the pupil moves {margin:g} mm off the axis, as far as the display's half "
+                f"{axis} ({size / 2:g} mm): no direction shows the display from every eye "
+                "position. Use a smaller eyebox or gaze, a larger display, or an explicit "
+                "fov_deg.")
+        halves.append(math.degrees(2 * math.atan((size / 2 - margin) / distance_mm)))
+    return (halves[0], halves[1])
 
 
 @dataclass(frozen=True)

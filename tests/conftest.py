@@ -58,7 +58,8 @@ device = "cpu"
 def tiny_config(preset: str = "near-eye-nominal", **overrides: Any) -> Config:
     """A near-eye preset shrunk to TINY, with extra dotted-key overrides on top: by default the
     nominal-point one (one eye state per iteration); "near-eye" samples the eye distribution."""
-    return resolve(preset, overrides={**TINY, **overrides})
+    eyebox = {"eye.eyebox_mm": 2.0} if preset == "near-eye" else {}  # the display is 4 mm
+    return resolve(preset, overrides={**TINY, **eyebox, **overrides})
 
 
 @pytest.fixture

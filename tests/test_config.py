@@ -59,9 +59,10 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert (eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm) == (4.0, 10.0, None)
     assert eye.view_pixels == (128, 128)
     assert eye.positions_mm == ((0.0, 0.0),) and eye.weights == (1.0,)
-    fov = full_fov_deg(20.0, 10.0 + 0.3 + 10.0)
+    # The field the display covers from every pupil centre of the 4 mm eyebox.
+    fov = full_fov_deg(20.0 - 4.0, 10.0 + 0.3 + 10.0)
     assert eye.fov_deg == pytest.approx((fov, fov), rel=1e-12)
-    assert fov / 128 == pytest.approx(0.41, abs=0.01)  # the "~0.4 deg per view pixel" claim
+    assert fov / 128 == pytest.approx(0.34, abs=0.01)  # the "~0.34 deg per view pixel" claim
     opt = config.optimizer
     assert (opt.method, opt.learning_rate, opt.iterations, opt.schedule, opt.init, opt.display) == (
         "adam", 0.05, 150, "cosine", "pinholes", "optimized")
@@ -89,7 +90,7 @@ def test_seed_preset_is_the_dissertation_setting() -> None:
 @pytest.mark.parametrize("name, expected", [
     ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
                   "gap 10 mm", "thickness 0.3 mm", "pupil 4 mm", "eye relief 10 mm",
-                  "128 x 128", "52.5 x 52.5 deg", "optimized", "adam lr 0.05", "150 iterations"]),
+                  "128 x 128", "43.0 x 43.0 deg", "optimized", "adam lr 0.05", "150 iterations"]),
     ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",
               "thickness 0.2 mm", "straight", "sgd lr 0.8 momentum 0.9", "display target",
               "no early stop"]),
@@ -204,8 +205,13 @@ def test_none_override_means_not_given() -> None:
 def test_fov_display_follows_the_resolved_geometry() -> None:
     config = resolve(overrides={"plate.gap_mm": 20.0, "display.width_mm": 30.0})
     fov_x, fov_y = config.scene.eye.fov_deg
-    assert fov_x == pytest.approx(full_fov_deg(30.0, 10.0 + 0.3 + 20.0), rel=1e-12)
-    assert fov_y == pytest.approx(full_fov_deg(20.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+    # Seen from every pupil centre of the 4 mm eyebox: 2 mm less of the display on each side.
+    assert fov_x == pytest.approx(full_fov_deg(30.0 - 4.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+    assert fov_y == pytest.approx(full_fov_deg(20.0 - 4.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+    point = resolve("near-eye-nominal", overrides={"display.width_mm": 30.0})
+    assert point.scene.eye.fov_deg[0] == pytest.approx(full_fov_deg(30.0, 20.3), rel=1e-12)
+    with pytest.raises(ValueError, match=r"eye\.eyebox_mm = \[20\.0, 20\.0\].*display's half"):
+        resolve(overrides={"eye.eyebox_mm": 20.0})
 
 
 def test_explicit_fov_and_focus() -> None:
@@ -325,7 +331,7 @@ def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -
     distribution_keys = {"eyebox_mm", "pupil_range_mm"}
     for section in SECTION_KEYS:
         for key in SECTION_KEYS[section]:
-            if key in distribution_keys or key == "eye_states":
+            if key in distribution_keys or key in ("eye_states", "fov_deg"):
                 assert near[section][key] != nominal[section][key], key
             else:
                 assert near[section][key] == nominal[section][key], key
@@ -357,6 +363,8 @@ eye_distribution_overrides = st.fixed_dictionaries(
 @settings(max_examples=60, deadline=None)
 @given(name=st.sampled_from(list(PRESETS)), overrides=eye_distribution_overrides)
 def test_eye_distribution_keys_round_trip(name: str, overrides: dict[str, Any]) -> None:
+    # An explicit field: "display" would refuse an eyebox as wide as the display.
+    overrides = {**overrides, "eye.fov_deg": [40.0, 40.0]}
     config = resolve(name, overrides=overrides)
     assert round_trip(config) == config
     assert parse_toml(to_toml(config), "x") == to_dict(config)

@@ -47,7 +47,7 @@ def test_percentiles_are_ordered_and_cover_every_variant(judged):
         assert np.all((quality.ssim[name] > -1) & (quality.ssim[name] <= 1))
     summary = quality.summary()
     assert summary["states"] == 12
-    assert summary["distribution"]["eyebox_mm"] == [4.0, 4.0]
+    assert summary["distribution"]["eyebox_mm"] == [2.0, 2.0]
 
 
 def test_eyebox_map_agrees_with_rendering_each_position_alone(judged):
