@@ -326,6 +326,26 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_display(args: argparse.Namespace) -> int:
+    from aperture_fab.recheck import run_display
+
+    focus: Any = None
+    if args.focus is not None:
+        focus = "infinity" if args.focus == "infinity" else _focus_mm(args.focus)
+    frame = run_display(
+        args.part, args.target, eye_mm=_pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
+        focus_mm=focus, iterations=args.iterations, config_path=args.config,
+        target_index=args.target_index, process=args.process, out=args.out)
+    x, y = frame.eye_mm
+    height, width = frame.display.shape[1:]
+    focus_text = "infinity" if frame.focus_mm is None else f"{frame.focus_mm:g} mm"
+    print(f"wrote {frame.path}: {width} x {height} display frame for the eye at ({x:g}, {y:g}) "
+          f"mm, pupil {frame.pupil_mm:g} mm, focus {focus_text}")
+    print(f"PSNR after gain: {frame.start_psnr_db:.2f} dB untracked -> {frame.psnr_db:.2f} dB "
+          f"tracked ({frame.iterations} iterations, solved in {frame.solve_s:.2f} s)")
+    return 0
+
+
 def _focus_mm(text: str) -> float:
     try:
         return float(text)
@@ -358,6 +378,20 @@ itself when the config shows targets. Without --mesh the exact model with the ho
 (the process's radius bias applied); with --mesh a ray trace of the part's mesh. The PNG is
 scaled by the view's least-squares gain to TARGET when one is given, else so that its
 99.5th percentile is white.
+"""
+
+DISPLAY_EPILOG = """\
+examples:
+  aperture-fab display outputs/x/design.npz img.png --eye 1.5,0 --pupil 4 --out frame.png
+  aperture-fab display outputs/x/plate.stl img.png --eye 0,-1 --pupil 6 --focus 500 \\
+      --iterations 10 --config outputs/x/design.toml --out frame.png
+
+Tracked display: the device knows the pupil's position and size and shows content solved for
+that eye state, starting from the design's (untracked) content; the plate stays as made (the
+process's radius bias applied). The solver is MLEM (Richardson-Lucy); it prints the PSNR after
+gain of the view with the untracked and the tracked content, and the solve time (the first
+solve of a process also loads the CPU kernels; per-frame latency: benchmarks/bench_display.py).
+See docs/tracking.md.
 """
 
 
@@ -451,6 +485,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, metavar="VIEW.png",
                    help="PNG to write (default: view_<PART stem>.png beside PART)")
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("display", help="the display frame for a tracked eye state",
+                       description="Solve the display content of a part for one eye state "
+                       "(pupil position and size, as an eye tracker reports them), the plate "
+                       "fixed, and write it as an sRGB PNG at the display's pixel count.",
+                       epilog=DISPLAY_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("part", type=Path, metavar="PART",
+                   help="design.npz, holes.csv or an STL (.stl)")
+    p.add_argument("target", type=Path, metavar="TARGET",
+                   help="the target image the eye should see")
+    p.add_argument("--eye", required=True, metavar="X,Y",
+                   help="pupil centre (x, y) in mm in the scene's frame (the config's nominal "
+                   "eye position is usually 0,0)")
+    p.add_argument("--pupil", required=True, type=float, metavar="MM",
+                   help="pupil diameter in mm")
+    p.add_argument("--focus", metavar="MM", help="eye focus distance in mm, or 'infinity' "
+                   "(default: the config's)")
+    p.add_argument("--iterations", type=int, default=None, metavar="N",
+                   help="solver iterations (default 5; 0: the untracked display)")
+    p.add_argument("--config", type=Path, metavar="FILE.toml",
+                   help="the design's config (default: design.toml beside PART)")
+    p.add_argument("--target-index", type=int, default=0, metavar="N",
+                   help="which of the design's display contents to start from (default 0)")
+    p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
+    p.add_argument("--out", type=Path, required=True, metavar="FRAME.png",
+                   help="PNG to write")
+    p.set_defaults(func=_cmd_display)
 
     p = sub.add_parser("presets", help="list the presets with their key numbers")
     p.set_defaults(func=_cmd_presets)

@@ -60,6 +60,8 @@ __all__ = [
     "load_part",
     "run_validate",
     "run_render",
+    "DisplayFrame",
+    "run_display",
 ]
 
 PartKind = Literal["design", "holes", "mesh"]
@@ -504,3 +506,134 @@ def run_render(
                          "another --out.") from err
     write_atomic(path, encode_png(np.clip(view * scale, 0, 1)))
     return RenderedView(view, scale, psnr, efficiency, scene.eye.positions_mm[1], path)
+
+
+# -- display (tracked) --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DisplayFrame:
+    """What `run_display` solved and wrote.
+
+    display: (C, H, W) float64 linear in [0, 1], the display frame for the eye state.
+    start_psnr_db: PSNR after gain of the view with the untracked display (the design's).
+    psnr_db: the same with the solved (tracked) frame.
+    solve_s: seconds of the solve alone (renderer built; the first solve of a process also
+        loads the CPU kernels). iterations: solver iterations.
+    eye_mm, pupil_mm, focus_mm (None: infinity): the eye state. path: the PNG written.
+    """
+
+    display: np.ndarray
+    start_psnr_db: float
+    psnr_db: float
+    solve_s: float
+    iterations: int
+    eye_mm: tuple[float, float]
+    pupil_mm: float
+    focus_mm: float | None
+    path: Path
+
+
+#: Most solver iterations `display` accepts (each costs a forward and a backward pass).
+MAX_DISPLAY_ITERATIONS = 1000
+
+
+def _check_eye_state(scene: Scene, eye_mm: tuple[float, float], pupil_mm: float,
+                     focus_mm: float | Literal["infinity"] | None) -> float | None:
+    """The focus distance in mm (None: infinity) of a valid eye state, else ValueError."""
+    from aperture_fab.eyes import MAX_PUPIL_MM
+    from aperture_fab.model import FOCUS_MARGIN
+
+    if not (len(eye_mm) == 2 and all(math.isfinite(float(v)) for v in eye_mm)):
+        raise ValueError(f"--eye {eye_mm!r}: give two finite numbers in mm as X,Y, e.g. 1.5,0.")
+    if not (math.isfinite(pupil_mm) and 0 < pupil_mm <= MAX_PUPIL_MM):
+        raise ValueError(f"--pupil {pupil_mm:g} is out of range; allowed: 0 < pupil <= "
+                         f"{MAX_PUPIL_MM:g} mm. Give the tracked pupil's diameter in mm (a human "
+                         "pupil is about 2 to 8 mm across).")
+    focus = scene.eye.focus_mm if focus_mm is None else (
+        None if focus_mm == "infinity" else float(focus_mm))
+    nearest = scene.plate_distance_mm * FOCUS_MARGIN
+    if focus is not None and not (math.isfinite(focus) and focus > nearest):
+        raise ValueError(f"--focus {focus:g} is out of range; allowed: a distance beyond "
+                         f"{nearest:.3g} mm (past the plate, measured from the pupil) or "
+                         "'infinity'. Give the eye's focus distance in mm.")
+    return focus
+
+
+def run_display(
+    part: Path,
+    target: Path,
+    *,
+    eye_mm: tuple[float, float],
+    pupil_mm: float,
+    focus_mm: float | Literal["infinity"] | None = None,
+    iterations: int | None = None,
+    config_path: Path | None = None,
+    target_index: int = 0,
+    process: str | None = None,
+    out: Path,
+) -> DisplayFrame:
+    """The `aperture-fab display` job: the display frame for one tracked eye state, with the
+    plate as made (the holes of the part, the process's radius bias applied), written as an
+    sRGB PNG at the display's pixel count.
+
+    The solve (aperture_fab.tracking.solve_display, MLEM) starts from the design's display
+    content (design.npz beside the config: built_displays, else displays, number
+    target_index), or the target itself when the config shows targets; it fits the view to
+    TARGET. eye_mm: the pupil centre (x, y) in mm in the scene frame; pupil_mm: its diameter;
+    focus_mm: "infinity", a distance in mm, or None for the config's. iterations: default
+    tracking.DEFAULT_ITERATIONS.
+    """
+    from aperture_fab.eyes import EyeStates
+    from aperture_fab.tracking import DEFAULT_ITERATIONS, tracked_views
+
+    kind = part_kind(part)
+    config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
+    config = read_config(config_path)
+    scene = config.scene
+    focus = _check_eye_state(scene, eye_mm, pupil_mm, focus_mm)
+    iterations = DEFAULT_ITERATIONS if iterations is None else iterations
+    if not (isinstance(iterations, int) and not isinstance(iterations, bool)
+            and 0 <= iterations <= MAX_DISPLAY_ITERATIONS):
+        raise ValueError(f"--iterations {iterations!r} is out of range; allowed: a whole number "
+                         f"from 0 to {MAX_DISPLAY_ITERATIONS} (0 shows the untracked display). "
+                         f"A few are enough: the default is {DEFAULT_ITERATIONS}.")
+    fabrication = fabrication_settings(config.extra, {"process": process})
+    design = _design_beside(config_path, part, kind)
+    if design is not None:
+        _check_design(design, config, config_path)
+    images, _ = load_targets([target])
+    view_targets, on_displays = _prepare(
+        config, images, None if design is None else design.displays.shape[1])
+    if config.optimizer.display == "target" or design is None:
+        start = on_displays[0]
+    else:
+        shown = design.built_displays if design.built_displays is not None else design.displays
+        if not (isinstance(target_index, int) and 0 <= target_index < len(shown)):
+            raise ValueError(
+                f"--target-index {target_index} is out of range; {design.path} has "
+                f"{len(shown)} display(s) ({', '.join(design.names)}): allowed 0 to "
+                f"{len(shown) - 1}.")
+        start = shown[target_index]
+    loaded = load_part(part, kind, config, fabrication, config_path)
+    device = resolve_device(config.optimizer.device)
+    dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    a = layout_fractions(loaded.layout, fabrication.process.radius_bias_mm)
+    state = EyeStates(np.array([eye_mm], dtype=np.float64), np.array([float(pupil_mm)]),
+                      np.array([0.0 if focus is None else 1000.0 / focus]), np.zeros((1, 2)),
+                      np.ones(1))
+    began = time.perf_counter()
+    solved = tracked_views(renderer, a, view_targets[0], state, start, iterations)
+    solve_s = time.perf_counter() - began
+    frame = solved.displays[0].detach().cpu().double().numpy()
+    path = out
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"cannot create the folder {path.parent}: {err.strerror}; choose "
+                         "another --out.") from err
+    write_atomic(path, encode_png(np.clip(frame, 0, 1)))
+    return DisplayFrame(frame, float(solved.start_psnr_db[0]), float(solved.psnr_db[0]),
+                        solve_s, iterations, (float(eye_mm[0]), float(eye_mm[1])),
+                        float(pupil_mm), focus, path)
