@@ -57,8 +57,8 @@ def thread_count() -> int:
 
 _inline = njit(cache=True, error_model="numpy", fastmath=_FAST, inline="always")
 _parallel = njit(cache=True, error_model="numpy", fastmath=_FAST, parallel=True)
-#: Columns of the per-view pair cache of the shared kernels.
-_CACHE_FIELDS = 10
+#: Columns of the per-view pair cache: `_pair`'s ten values and the lens's equal-area radius.
+_CACHE_FIELDS = 11
 
 
 @_inline
@@ -102,11 +102,10 @@ def _lens(r1, m, d):
 
 
 @_inline
-def _share(pupil_bottom, area, po):
-    """The share of a lens of `area`, centred `po` from the pupil footprint's centre, inside the
-    footprint's (locally straight) edge, and d (area x share) / d area / share: the lens is an
-    equal-area disk, its share a circular segment."""
-    lens_r = math.sqrt(max(area / math.pi, _EPS))
+def _share(pupil_bottom, lens_r, po):
+    """The share of a lens (equal-area radius lens_r), centred `po` from the pupil footprint's
+    centre, inside the footprint's (locally straight) edge, and d (area x share) / d area /
+    share: the lens is an equal-area disk, its share a circular segment."""
     x = (pupil_bottom - po) / lens_r
     if x >= 1.0:
         return 1.0, 1.0
@@ -257,8 +256,9 @@ def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
 @_inline
 def _fill(cache, n, radius, geometry, offsets, states, s, vx, vy, i, j, shared):
     pair = _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared)
-    for f in range(_CACHE_FIELDS):
+    for f in range(_CACHE_FIELDS - 1):
         cache[n, f] = pair[f]
+    cache[n, _CACHE_FIELDS - 1] = math.sqrt(max(pair[4] / math.pi, _EPS))
 
 
 @_parallel
@@ -290,13 +290,15 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                 keep = states[s, 7]
                 pupil_b = states[s, 2]
                 norm = states[s, 6]
-                r0, r1, fx, fy = _window(geometry, states[s, 0], states[s, 1], keep, v_x, v_y,
-                                         extra)
+                fx = states[s, 0] + geometry[9] * v_x
+                fy = states[s, 1] + geometry[9] * v_y
+                ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep, pupil_b,
+                                                     margin, extra, shared)
                 for c in range(channels):
                     acc[c] = 0.0
                 for i in range(r0, r1 + 1):
-                    c0, c1 = _chord(geometry, fx, fy, keep + extra, i)
-                    ci0, ci1 = _inner(geometry, states, s, fx, fy, v_x, v_y, margin, i, shared)
+                    c0, c1 = _chord(geometry, ox, oy, outer, i)
+                    ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
                     for j in range(c0, c1 + 1):
                         n = (i - origin_r) * box + (j - origin_c)
                         if not (shared and seen[n]):
@@ -314,10 +316,11 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                             for c in range(channels):
                                 acc[c] += w * samples[n, c]
                             continue
-                        if (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 >= keep * keep:
+                        if not shared and (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 \
+                                >= keep * keep:
                             continue
                         po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                        share, _ = _share(pupil_b, area, po)
+                        share, _ = _share(pupil_b, cache[n, 10], po)
                         w = area * share * norm
                         for c in range(channels):
                             acc[c] += w * samples[n, c]
@@ -355,12 +358,13 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                     keep = states[s, 7]
                     pupil_b = states[s, 2]
                     norm = states[s, 6]
-                    r0, r1, fx, fy = _window(geometry, states[s, 0], states[s, 1], keep, v_x,
-                                             v_y, extra)
+                    fx = states[s, 0] + geometry[9] * v_x
+                    fy = states[s, 1] + geometry[9] * v_y
+                    ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep,
+                                                         pupil_b, margin, extra, shared)
                     for i in range(r0, r1 + 1):
-                        c0, c1 = _chord(geometry, fx, fy, keep + extra, i)
-                        ci0, ci1 = _inner(geometry, states, s, fx, fy, v_x, v_y, margin, i,
-                                          shared)
+                        c0, c1 = _chord(geometry, ox, oy, outer, i)
+                        ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
                         for j in range(c0, c1 + 1):
                             n = (i - origin_r) * box + (j - origin_c)
                             if not (shared and seen[n]):
@@ -384,10 +388,11 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                                     dot += g * samples[n, c]
                                 g_area[n] += dot * norm
                                 continue
-                            if (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 >= keep * keep:
+                            if not shared and (cache[n, 0] - fx) ** 2 \
+                                    + (cache[n, 1] - fy) ** 2 >= keep * keep:
                                 continue
                             po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                            share, slope = _share(pupil_b, area, po)
+                            share, slope = _share(pupil_b, cache[n, 10], po)
                             if slope == 0.0:
                                 continue
                             w = area * share * norm
@@ -425,26 +430,51 @@ def _settle(grad_radius, grad_stack, want_stack, b, cache, samples, slopes, g_sa
 
 
 @_inline
-def _inner(geometry, states, s, fx, fy, vx, vy, margin, i, shared):
-    """Columns (inclusive) of hole row i whose lens lies wholly inside state s's pupil (shared
-    states only; an empty range otherwise)."""
-    inside = states[s, 2] - margin
-    if not shared or inside <= 0.0:
+def _span(geometry, fx, fy, vx, vy, keep, pupil_b, margin, extra, shared):
+    """Where state's pairs lie for one view direction: the centre (x, y) and radius of the disk
+    of hole axes to walk, the radius within which a lens lies wholly inside the pupil (share 1;
+    negative: none), and the rows (inclusive) the outer disk covers.
+
+    Shared (infinite focus): a lens centre is its hole's axis point moved by t v / 2, so the
+    disk is centred there: radius R_b + margin holds every lens that reaches the pupil, R_b -
+    margin those wholly inside (margin: the largest lens radius plus hole displacement).
+    Otherwise: hole axes within keep + extra of the footprint centre, each tested."""
+    if shared:
+        t = geometry[4]
+        ox = fx - t * vx / 2
+        oy = fy - t * vy / 2
+        outer = pupil_b + margin
+        inner = pupil_b - margin
+    else:
+        ox = fx
+        oy = fy
+        outer = keep + extra
+        inner = -1.0
+    ncy = geometry[1]
+    r0 = max(0, math.ceil((ncy - 1) / 2 - (oy + outer) / geometry[3]))
+    r1 = min(int(ncy) - 1, math.floor((ncy - 1) / 2 - (oy - outer) / geometry[3]))
+    return ox, oy, outer, inner, int(r0), int(r1)
+
+
+@_inline
+def _inner_chord(geometry, ox, oy, inner, i):
+    if inner <= 0.0:
         return 0, -1
-    t = geometry[4]
-    return _chord(geometry, fx - t * vx / 2, fy - t * vy / 2, inside, i)
+    return _chord(geometry, ox, oy, inner, i)
 
 
 @_inline
 def _origin(geometry, states, vx, vy, extra):
-    """First row and column of the union of the states' hole windows for one view direction."""
+    """First row and column of the union of the states' hole windows for one view direction
+    (widened by t |v| / 2, the shared spans' shift)."""
     r_min = 1 << 30
     c_min = 1 << 30
+    slack = geometry[4] * math.sqrt(vx * vx + vy * vy) / 2
     for s in range(states.shape[0]):
-        keep = states[s, 7]
-        r0, _, fx, _ = _window(geometry, states[s, 0], states[s, 1], keep, vx, vy, extra)
-        reach = keep + extra
-        c0 = math.ceil((fx - reach) / geometry[2] + (geometry[0] - 1) / 2)
+        r0, _, fx, _ = _window(geometry, states[s, 0], states[s, 1], states[s, 7] + slack, vx,
+                               vy, extra)
+        c0 = math.ceil((fx - states[s, 7] - slack - extra) / geometry[2]
+                       + (geometry[0] - 1) / 2)
         r_min = min(r_min, r0)
         c_min = min(c_min, max(0, int(c0)))
     return r_min, c_min

@@ -537,7 +537,9 @@ class _KernelView(torch.autograd.Function):
         out = np.zeros((len(rows), stack.shape[1], len(vy), len(vx)))
         shared = bool(np.all(rows[:, 3] == 1.0) and np.all(rows[:, 4] == 1.0))
         # Holes per axis that the union of the states' windows can span, plus slack.
-        spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra))
+        slack = scene.plate.thickness_mm * float(np.hypot(np.abs(vx).max(), np.abs(vy).max()))
+        spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra)
+                       + slack)
         margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
             np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
         args = (*args, math.ceil(spread / min(scene.plate.pitch_mm)) + 3, shared, margin)
