@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from aperture_fab.baselines import elemental_display, regular_pinholes
+from aperture_fab.budget import check_budget
 from aperture_fab.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.model import Renderer, render_open_states
 from aperture_fab.quantize import MadeSizes
@@ -270,6 +271,7 @@ def optimize(
     """
     device = resolve_device(settings.device)
     dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    check_budget(scene, settings, np.shape(targets), device=device)  # before any work
     lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
     if not 0 <= lo < hi <= 1:
         raise ValueError(f"bounds = {(lo, hi)} must satisfy 0 <= a_min < a_max <= 1.")

@@ -48,6 +48,9 @@ def bench_quality() -> ModuleType:
         ("seed-28", (28, 28), (28, 28), (28, 28), (10 / 28, 15 / 28)),
         ("seed-100", (100, 100), (100, 100), (28, 28), (0.1, 0.15)),
         ("near-eye", (80, 80), (400, 400), (128, 128), (0.25, 0.25)),
+        ("near-eye-1", (80, 80), (400, 400), (128, 128), (0.25, 0.25)),
+        ("nominal", (80, 80), (400, 400), (128, 128), (0.25, 0.25)),
+        ("nominal-torch", (80, 80), (400, 400), (128, 128), (0.25, 0.25)),
         ("large", (512, 512), (1024, 1024), (512, 512), (0.05, 0.05)),
     ],
 )
@@ -65,6 +68,55 @@ def test_case_scenes(bench_optimize: ModuleType, name: str, cells: tuple[int, in
     assert scene.plate.size_mm == pytest.approx((scene.display.width_mm, scene.display.height_mm))
     assert config.optimizer.iterations == 7
     assert config.optimizer.plateau_patience == 0  # timed runs never stop early
+
+
+def test_case_eye_states_and_backends(bench_optimize: ModuleType) -> None:
+    """The issue-9 cases: 16 drawn states, one drawn state, the nominal state on the default
+    backend and on the torch path (the reference), side by side on the same scene."""
+    from aperture_fab.eyes import distribution_of
+
+    cases = bench_optimize.CASES
+    configs = {name: bench_optimize.case_config(cases[name], "cpu", 1)
+               for name in ("near-eye", "near-eye-1", "nominal", "nominal-torch", "large")}
+    assert configs["near-eye"].optimizer.eye_states == 16
+    assert configs["near-eye-1"].optimizer.eye_states == 1
+    assert not distribution_of(configs["near-eye-1"].scene.eye).is_point
+    for name in ("nominal", "nominal-torch", "large"):
+        assert distribution_of(configs[name].scene.eye).is_point, name
+    assert configs["nominal"].scene == configs["nominal-torch"].scene
+    assert cases["nominal-torch"].backend == "torch" and cases["nominal"].backend == "auto"
+    quick = bench_optimize.case_config(cases["near-eye"], "cpu", 1, quick=True)
+    assert quick.scene.eye.view_pixels == (32, 32)
+    assert bench_optimize.case_config(cases["large"], "cpu", 1, quick=True).scene.eye \
+        .view_pixels == (512, 512)
+
+
+def test_kernel_pairs_and_bytes(bench_optimize: ModuleType) -> None:
+    """The pair count of the bytes model: every state's own pairs, or the union when the
+    states share them (all focused at infinity)."""
+    import numpy as np
+
+    from aperture_fab.eyes import EyeStates
+    from aperture_fab.model import Renderer
+
+    config = bench_optimize.case_config(bench_optimize.CASES["nominal"], "cpu", 1, quick=True)
+    renderer = Renderer(config.scene)
+    open_fraction = np.full((80, 80), 0.3)
+    one = renderer.nominal_states()
+    pairs, evaluations = bench_optimize.kernel_pairs(renderer, open_fraction, one)
+    assert evaluations == pairs  # one state: one evaluation per sample
+    assert 0 < pairs < 32 * 32 * 80 * 80
+    twice = EyeStates.concat([one, one])
+    # Shared (infinite focus): one sample per pair, one evaluation per state and pair.
+    assert bench_optimize.kernel_pairs(renderer, open_fraction, twice) == (pairs, 2 * pairs)
+    near = EyeStates(one.offset_mm, one.pupil_mm, np.array([0.25]), one.gaze_deg, one.weight)
+    unshared, both = bench_optimize.kernel_pairs(renderer, open_fraction,
+                                                 EyeStates.concat([one, near]))
+    assert unshared == both and pairs < unshared <= 3 * pairs
+    assert bench_optimize.kernel_pairs(renderer, np.zeros((80, 80)), one)[0] == 0
+    model = bench_optimize.kernel_bytes(pairs, 1, 3, 1024, 4, 10**6, 2, 1, True)
+    assert model["read"] == model["forward_read"] + model["backward_read"]
+    assert model["forward_read"] == pairs * 8 * 3 * 4
 
 
 def test_prepare_target_matches_pipeline(bench_optimize: ModuleType) -> None:
@@ -93,15 +145,34 @@ def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
     assert figures["quick"] is True
     env = figures["environment"]
     assert env["torch"] and env["device"] == "cpu" and _positive(env["threads"])
-    assert set(figures["cases"]) == {"seed-28", "seed-100", "near-eye"}
+    assert set(figures["cases"]) == {"seed-28", "seed-100", "near-eye", "near-eye-1",
+                                     "nominal", "nominal-torch"}
+    assert _positive(figures["copy_bandwidth"]["numpy_gbs"])
+    assert _positive(figures["copy_bandwidth"]["torch_gbs"])
     for name, case in figures["cases"].items():
-        for key in ("setup_s", "iteration_s", "measured_s", "pairs", "goal_s", "ratio_to_goal"):
+        for key in ("setup_s", "iteration_s", "measured_s", "pairs", "forward_s", "backward_s",
+                    "estimate_mib"):
             assert _positive(case[key]), (name, key, case[key])
         # A small case can stay within the memory the imports already took.
         assert math.isfinite(case["peak_rss_increase_mib"]) and case["peak_rss_increase_mib"] >= 0
-        assert case["ratio_to_goal"] == pytest.approx(case["measured_s"] / case["goal_s"])
+        if case["goal_s"] is not None:
+            assert case["ratio_to_goal"] == pytest.approx(case["measured_s"] / case["goal_s"])
         assert case["cuda_peak_mib"] is None
         assert all(_positive(s) for s in case["iteration_s_runs"])
+        assert case["forward_s"] + case["backward_s"] < 2 * case["iteration_s"]
+        if case["backend"] == "kernel":
+            for key in ("kernel_forward_s", "kernel_backward_s", "read_gb", "achieved_gbs"):
+                assert _positive(case[key]), (name, key, case[key])
+        else:
+            assert case["achieved_gbs"] is None
+    assert figures["cases"]["nominal-torch"]["backend"] == "torch"
+    assert figures["cases"]["near-eye"]["states"] == 16
+    goals = figures["goals"]
+    cases = figures["cases"]
+    assert goals["single_speedup"] == pytest.approx(
+        cases["nominal-torch"]["iteration_s"] / cases["nominal"]["iteration_s"])
+    assert goals["states_ratio"] == pytest.approx(
+        cases["near-eye"]["iteration_s"] / cases["nominal-torch"]["iteration_s"])
     seed = figures["cases"]["seed-28"]
     # A quick design is extended to 300 iterations at its steady-state rate.
     assert seed["projected"] is True and seed["nominal_iterations"] == 300
@@ -111,6 +182,28 @@ def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
     assert figures["cases"]["near-eye"]["metric"] == "iteration"
     printed = capsys.readouterr().out
     assert all(name in printed for name in figures["cases"])
+    assert "goal: single-state iteration >= 3x faster" in printed
+
+
+@pytest.mark.slow
+def test_bench_optimize_refuses_over_budget(bench_optimize: ModuleType, tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A case over the memory budget is reported as refused, with the estimate, not run."""
+    monkeypatch.setenv("APERTURE_FAB_MEMORY_GB", "0.001")
+    figures = bench_optimize.main(["--quick", "--repeats", "1", "--device", "cpu",
+                                   "--cases", "large"])
+    large = figures["cases"]["large"]
+    assert "budget" in large["refused"] and large["estimate_mib"] > 1
+    assert "refused" in capsys.readouterr().out
+
+
+def test_bench_optimize_skips_cuda_without_a_gpu(bench_optimize: ModuleType) -> None:
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    assert bench_optimize.main(["--device", "cuda"]) == {"skipped": "no CUDA device"}
 
 
 @pytest.mark.slow
