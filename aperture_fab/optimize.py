@@ -48,6 +48,8 @@ COSINE_FLOOR = 0.05
 INIT_CLOSED_SHARE = 0.02
 #: Share of the snapped iterations after which only the display content moves.
 FROZEN_PLATE_START = 0.5
+#: MLEM iterations per eye state and design iteration of a tracked design (see _tracked_loss).
+TRACKED_SOLVE_ITERATIONS = 2
 #: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
 EFFICIENCY_PUPIL_SAMPLES = 32
 
@@ -221,6 +223,32 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     return combine_states(per_state / targets.shape[0], weights, tail_share)
 
 
+def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
+                  targets: torch.Tensor, states: EyeStates, tail_share: float) -> torch.Tensor:
+    """The loss of a tracked design (optimizer.tracking = "tracked"): each eye state sees the
+    display content solved for it (`aperture_fab.tracking.solve_display`, TRACKED_SOLVE_ITERATIONS
+    of MLEM warm-started from `displays`). No gradient flows through the solve: at a solved
+    display the loss is stationary in the display, so the plate's gradient is the partial one
+    (the envelope theorem; approximate, as a few iterations do not reach the optimum). Its
+    value is the tracked loss; its gradient moves the plate by the tracked loss and the warm
+    start `displays` by their own (untracked) loss, the plate held."""
+    from aperture_fab.tracking import solve_display  # tracking imports this module
+
+    per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
+    for t in range(targets.shape[0]):
+        solved = solve_display(renderer, a.detach(), targets[t], states, displays[t].detach(),
+                               TRACKED_SOLVE_ITERATIONS, keep_best=False).detach()
+        views = torch.cat([
+            renderer.render_states(a, renderer.display_stack(solved[s]), states.subset([s]))
+            for s in range(len(states))
+        ])
+        per_state = per_state + gain_mse_states(views, targets[t])
+    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    tracked = combine_states(per_state / targets.shape[0], weights, tail_share)
+    warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share)
+    return tracked + (warm - warm.detach())
+
+
 def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
                    settings: OptimizerSettings, bounds: tuple[float, float] | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -307,9 +335,12 @@ def optimize(
         return a
 
     def loss_fn(iteration: int) -> torch.Tensor:
+        states = training_states(scene, settings, iteration)
+        if settings.tracking == "tracked" and display_param is not None:
+            return _tracked_loss(renderer, plate(iteration), display_param, target_t, states,
+                                 settings.tail_share)
         displays = shown_t if display_param is None else display_param
-        return _design_loss(renderer, plate(iteration), displays, target_t,
-                            training_states(scene, settings, iteration),
+        return _design_loss(renderer, plate(iteration), displays, target_t, states,
                             settings.efficiency_weight, settings.tail_share)
 
     def keep_continuous() -> None:

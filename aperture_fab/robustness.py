@@ -61,9 +61,9 @@ class EyeQuality:
     psnr_db, ssim: {variant: (T, E) float64} per target and state (PSNR after gain).
     nominal_psnr_db: {variant: (T,)} at the nominal state.
     map_offsets_mm: (n, n, 2) pupil offsets of the eyebox map (row 0 at +y); map_inside (n, n).
-    map_psnr_db: {variant: (T, n, n)} at the nominal pupil and focus (NaN outside the eyebox).
+    map_psnr_db: {part: (T, n, n)} at the nominal pupil and focus (NaN outside the eyebox).
     pupil_mm: (m,) and pupil_psnr_db {variant: (T, m)}: nominal position and focus.
-    focus_diopters: (m,) and focus_psnr_db {variant: (T, m)}: nominal position and pupil.
+    focus_diopters: (m,) and focus_psnr_db {part: (T, m)}: nominal position and pupil.
     thumbnail_offsets_mm: (k, 2); thumbnails: (T, k, C, ny, nx) views of the first variant,
         scaled by their gain and clipped to [0, 1].
     """
@@ -161,9 +161,9 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
     """Judge variants over the scene's eye distribution.
 
     targets: (T, C, ny, nx) linear, on the view grid. variants: {name: Variant}; the first is
-    the part (its views make the thumbnails). The map and sweeps are rendered for every
-    variant; the map of the open display (no plate) is skipped (its quality hardly depends on
-    the pupil's position).
+    the part: the eyebox map, the focus sweep (whose states away from infinity cannot share
+    display samples) and the thumbnails are rendered for it alone; the percentiles, the
+    nominal figure and the pupil sweep for every variant.
     """
     if not variants:
         raise ValueError("judge_eyes got no variants; give at least the part.")
@@ -191,17 +191,18 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
                                for t in range(len(targets))])
         nominal_psnr[name] = _psnr(_views(renderer, variant, targets, nominal), targets)[:, 0]
         pupil_psnr[name] = _psnr(_views(renderer, variant, targets, pupil_states), targets)
+        if index > 0:
+            continue  # the map, focus sweep and thumbnails are the part's alone
         focus_psnr[name] = _psnr(_views(renderer, variant, targets, focus_states), targets)
         if variant.open_fraction is not None:
             full = np.full((len(targets), map_size * map_size), np.nan)
             full[:, inside.reshape(-1)] = _psnr(_views(renderer, variant, targets, grid), targets)
             map_psnr[name] = full.reshape(len(targets), map_size, map_size)
-        if index == 0:
-            thumbs = _views(renderer, variant, targets, thumb_states)
-            flat = thumbs.reshape(*thumbs.shape[:2], -1)
-            goal = targets.reshape(len(targets), 1, -1)
-            gain = (flat * goal).sum(-1) / ((flat * flat).sum(-1) + 1e-20)
-            thumbnails = np.clip(thumbs * gain[..., None, None, None], 0, 1)
+        thumbs = _views(renderer, variant, targets, thumb_states)
+        flat = thumbs.reshape(*thumbs.shape[:2], -1)
+        goal = targets.reshape(len(targets), 1, -1)
+        gain = (flat * goal).sum(-1) / ((flat * flat).sum(-1) + 1e-20)
+        thumbnails = np.clip(thumbs * gain[..., None, None, None], 0, 1)
     offsets = grid_offsets(distribution, map_size)
     return EyeQuality(distribution, states, psnr, ssim, nominal_psnr, offsets, inside, map_psnr,
                       pupils, pupil_psnr, focus, focus_psnr, thumb_offsets, thumbnails)

@@ -95,6 +95,11 @@ class OptimizerSettings:
         _check_choice("optimizer.display", self.display, DISPLAY_MODES)
         _check_choice("optimizer.precision", self.precision, PRECISIONS)
         _check_choice("optimizer.tracking", self.tracking, TRACKINGS)
+        if self.tracking == "tracked" and self.display == "target":
+            raise ValueError(
+                'optimizer.tracking = "tracked" solves the display content per eye state, but '
+                'optimizer.display = "target" shows the target as is; use display = '
+                '"optimized" with tracking, or tracking = "untracked".')
         check_positive("optimizer.learning_rate", self.learning_rate,
                        "Typical: 0.01 to 0.1 for Adam, 0.1 to 1 for SGD.", 100.0)
         if not (math.isfinite(self.momentum) and 0 <= self.momentum < 1):

@@ -487,3 +487,21 @@ def test_tail_share_weights_the_worst_states(make_config: MakeConfig) -> None:
     mean = run(make_config("near-eye", **settings)).loss_history[0]
     tail = run(make_config("near-eye", **settings, **{"optimizer.tail_share": 0.25}))
     assert tail.loss_history[0] >= mean
+
+
+def test_a_tracked_design_lowers_the_tracked_loss(make_config: MakeConfig) -> None:
+    """tracking = "tracked": each state sees its own solved display; the loss reported is the
+    tracked one, below the untracked loss of the same start, and it goes down."""
+    config = make_config("near-eye", **{"optimizer.iterations": 6, "optimizer.eye_states": 3,
+                                        "optimizer.tracking": "tracked"})
+    untracked = run(make_config("near-eye", **{"optimizer.iterations": 1,
+                                               "optimizer.eye_states": 3}))
+    tracked = run(config)
+    assert tracked.loss_history[0] < untracked.loss_history[0]
+    assert tracked.loss_history[-1] < tracked.loss_history[0]
+    assert np.all((tracked.displays >= 0) & (tracked.displays <= 1))
+
+
+def test_tracking_needs_an_optimized_display(make_config: MakeConfig) -> None:
+    with pytest.raises(ValueError, match=r"tracking.*optimized"):
+        make_config(**{"optimizer.tracking": "tracked", "optimizer.display": "target"})

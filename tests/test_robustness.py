@@ -27,7 +27,7 @@ def judged():
     shown = resample(image, scene.display.pixels)[None]
     array = regular_pinholes(scene)
     pinhole_display = elemental_display(scene, array, torch.as_tensor(target[0]))
-    variants = {
+    variants = {  # the first is the part
         "pinholes": Variant(array.open_fraction, pinhole_display.numpy()[None]),
         "open": Variant(None, shown),
     }
