@@ -84,7 +84,8 @@ def test_small_scene_passes_and_returns_the_estimate() -> None:
 
 
 def test_refusal_names_the_estimate_the_budget_and_the_fix() -> None:
-    config = _config(**{"eye.view_pixels": [3000, 3000], "optimizer.precision": "float64"})
+    config = _config(**{"eye.view_pixels": [3000, 3000], "optimizer.precision": "float64",
+                        "optimizer.eye_states": 16})
     peak = budget.estimate_bytes(config.scene, 16, "kernel", "float64")
     with pytest.raises(ValueError) as refused:
         budget.check_budget(config.scene, config.optimizer, (1, 3, 3000, 3000),
@@ -116,8 +117,8 @@ def test_large_views_and_plates_against_this_machines_budget() -> None:
     """3000 x 3000 views and 5000 x 5000 cells: the kernel path holds no pair table, so they
     take a few GB (refused only where that is more than the budget); the torch path (today's
     CUDA path) would need hundreds of GB for the view and is refused on an 80 GB GPU."""
-    views = _config(**{"eye.view_pixels": [3000, 3000]})
-    cells = _config(**{"plate.cells": [5000, 5000]})
+    views = _config(**{"eye.view_pixels": [3000, 3000], "optimizer.eye_states": 16})
+    cells = _config(**{"plate.cells": [5000, 5000], "optimizer.eye_states": 16})
     for config, low, high in ((views, 4, 20), (cells, 1, 6)):
         peak = budget.estimate_bytes(config.scene, 16, "kernel", "float32")
         assert low * GB < peak < high * GB
