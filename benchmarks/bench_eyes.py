@@ -13,7 +13,7 @@ ellipse, pupils 3 to 6 mm, focus at infinity), PSNR after gain:
 
 - untracked: the part's display for every state; beside it the open display (no plate, the
   target shown), the best regular pinhole array (elemental images for the nominal eye) and the
-  nominal-point design, judged the same way;
+  nominal-point design (designed over the same field of view), judged the same way;
 - tracked: the display solved per state from the part's (aperture_fab.tracking.solve_display,
   MLEM, --tracked-iterations per state) on the first --tracked-states states of the set, for
   the default part and for the regular pinhole array.
@@ -58,8 +58,10 @@ COLUMNS = (("as_built", "part"), ("nominal_design", "nominal"), ("open", "open")
 
 
 def _part(preset: str, name: str, iterations: int | None) -> tuple[Variant, float]:
-    """Design for one target with a preset; the part as built and the design's seconds."""
-    config = resolve(preset, None, {"optimizer.iterations": iterations})
+    """Design for one target with a preset, over the default preset's field of view (the one
+    every variant is judged on); the part as built and the design's seconds."""
+    fov = list(resolve(PRESET).scene.eye.fov_deg)
+    config = resolve(preset, None, {"optimizer.iterations": iterations, "eye.fov_deg": fov})
     process = PROCESSES[PROCESS]
     start = time.perf_counter()
     result = design([EXAMPLES[name]()], config, names=[name],
