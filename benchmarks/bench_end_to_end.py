@@ -7,7 +7,8 @@ Run: .venv/bin/python benchmarks/bench_end_to_end.py [--target natural] [--repea
 Each repeat runs the command line a user types, `aperture-fab design TARGET --out DIR/plate.stl`,
 in a fresh child process (imports and start-up included), with the default preset and process,
 and reads the per-stage seconds the job records in report.json (`timings_s`). The total is the
-child's wall time. The goal (issue 4) is under 2 minutes on 2 CPU cores: run it as
+child's wall time. The goal (issue 8: designed and judged over the eye distribution) is under
+3 minutes on 2 CPU cores (issue 4 asked 2 minutes of the nominal-point design): run it as
 `taskset -c 0,1 .venv/bin/python benchmarks/bench_end_to_end.py` on a quiet machine. The example
 target is written by the project's own generator (aperture_fab.targets).
 """
@@ -35,7 +36,7 @@ from aperture_fab.images import encode_png
 from aperture_fab.presets import DEFAULT_PRESET, PRESETS
 from aperture_fab.targets import EXAMPLES
 
-GOAL_S = 120.0
+GOAL_S = 180.0
 
 
 def run_once(target: str, preset: str, iterations: int | None, folder: Path) -> dict[str, Any]:
