@@ -65,7 +65,7 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert fov / 128 == pytest.approx(0.34, abs=0.01)  # the "~0.34 deg per view pixel" claim
     opt = config.optimizer
     assert (opt.method, opt.learning_rate, opt.iterations, opt.schedule, opt.init, opt.display) == (
-        "adam", 0.05, 100, "cosine", "pinholes", "optimized")
+        "adam", 0.05, 150, "cosine", "pinholes", "optimized")
     assert (opt.efficiency_weight, opt.plateau_patience, opt.precision, opt.device, opt.seed) == (
         0.0, 60, "float32", "auto", 0)
 
@@ -90,7 +90,7 @@ def test_seed_preset_is_the_dissertation_setting() -> None:
 @pytest.mark.parametrize("name, expected", [
     ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
                   "gap 10 mm", "thickness 0.3 mm", "pupil 4 mm", "eye relief 10 mm",
-                  "128 x 128", "43.0 x 43.0 deg", "optimized", "adam lr 0.05", "100 iterations"]),
+                  "128 x 128", "43.0 x 43.0 deg", "optimized", "adam lr 0.05", "150 iterations"]),
     ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",
               "thickness 0.2 mm", "straight", "sgd lr 0.8 momentum 0.9", "display target",
               "no early stop"]),
@@ -312,7 +312,7 @@ def test_near_eye_designs_for_a_moving_eye() -> None:
     assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.pupil_mm,
             eye.focus_range_diopters, eye.gaze_deg, eye.rotation_mm) == (
         (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, None, 0.0, 11.0)
-    assert (opt.eye_states, opt.tail_share, opt.tracking) == (8, 1.0, "untracked")
+    assert (opt.eye_states, opt.tail_share, opt.tracking) == (16, 1.0, "untracked")
 
 
 @pytest.mark.parametrize("name", ["near-eye-nominal", "seed"])
@@ -331,7 +331,7 @@ def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -
     distribution_keys = {"eyebox_mm", "pupil_range_mm"}
     for section in SECTION_KEYS:
         for key in SECTION_KEYS[section]:
-            if key in distribution_keys or key in ("eye_states", "fov_deg", "iterations"):
+            if key in distribution_keys or key in ("eye_states", "fov_deg"):
                 assert near[section][key] != nominal[section][key], key
             else:
                 assert near[section][key] == nominal[section][key], key

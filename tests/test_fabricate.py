@@ -26,7 +26,7 @@ TINY = {
 
 
 def tiny_config(**extra):
-    return resolve("near-eye", overrides={**TINY, **extra})
+    return resolve("near-eye-nominal", overrides={**TINY, **extra})
 
 
 def test_design_bounds_follow_the_process():

@@ -380,7 +380,7 @@ def test_part_files_step_carries_the_parts_chamfer() -> None:
     from aperture_fab.fabricate import fabrication_settings, make_part, part_files
     from aperture_fab.mesh import mesh_volume_mm3
 
-    config = resolve("near-eye", overrides={
+    config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
         "plate.cells": [16, 16], "plate.pitch_mm": [0.25, 0.25], "eye.view_pixels": [12, 12],
         "plate.thickness_mm": 0.3, "plate.hole_axis": "chief_ray",

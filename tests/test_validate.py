@@ -122,7 +122,7 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
     from aperture_fab.optimize import fit_display, gain_mse
     from aperture_fab.pipeline import _prepare
 
-    config = resolve("near-eye", overrides={
+    config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
         "plate.cells": [16, 16], "eye.view_pixels": [16, 16], "optimizer.device": "cpu",
         "optimizer.precision": "float64"})
