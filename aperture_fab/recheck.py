@@ -417,6 +417,18 @@ def _view_scene(scene: Scene, eye_mm: tuple[float, float] | None, pupil_mm: floa
     return Scene(scene.display, scene.plate, moved)
 
 
+def _design_display(design: SavedDesign, target_index: int) -> np.ndarray:
+    """The display content (C, H, W) a design shows for target number target_index: its
+    content fitted to the part when it has one."""
+    shown = design.built_displays if design.built_displays is not None else design.displays
+    if not (isinstance(target_index, int) and 0 <= target_index < len(shown)):
+        raise ValueError(
+            f"--target-index {target_index} is out of range; {design.path} has "
+            f"{len(shown)} display(s) ({', '.join(design.names)}): allowed 0 to "
+            f"{len(shown) - 1}.")
+    return np.asarray(shown[target_index])
+
+
 def run_render(
     part: Path,
     *,
@@ -460,13 +472,7 @@ def run_render(
     if config.optimizer.display == "target" and on_display is not None:
         display = on_display
     elif design is not None:
-        shown = design.built_displays if design.built_displays is not None else design.displays
-        if not (isinstance(target_index, int) and 0 <= target_index < len(shown)):
-            raise ValueError(
-                f"--target-index {target_index} is out of range; {design.path} has "
-                f"{len(shown)} display(s) ({', '.join(design.names)}): allowed 0 to "
-                f"{len(shown) - 1}.")
-        display = shown[target_index]
+        display = _design_display(design, target_index)
     else:
         raise ValueError(
             f"no display content: there is no {DESIGN_NAME} beside {config_path}. Give the "
@@ -608,13 +614,7 @@ def run_display(
     if config.optimizer.display == "target" or design is None:
         start = on_displays[0]
     else:
-        shown = design.built_displays if design.built_displays is not None else design.displays
-        if not (isinstance(target_index, int) and 0 <= target_index < len(shown)):
-            raise ValueError(
-                f"--target-index {target_index} is out of range; {design.path} has "
-                f"{len(shown)} display(s) ({', '.join(design.names)}): allowed 0 to "
-                f"{len(shown) - 1}.")
-        start = shown[target_index]
+        start = _design_display(design, target_index)
     loaded = load_part(part, kind, config, fabrication, config_path)
     device = resolve_device(config.optimizer.device)
     dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
