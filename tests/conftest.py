@@ -104,3 +104,23 @@ def tiny_toml(tmp_path: Path) -> Path:
     path = tmp_path / "tiny.toml"
     path.write_text(TINY_TOML)
     return path
+
+
+@pytest.fixture(scope="module")
+def designed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A tiny design's folder (design.npz, design.toml, holes.csv, plate.stl) and marker.png,
+    made once per test module through the command line."""
+    from aperture_fab.cli import main
+
+    folder = tmp_path_factory.mktemp("designed")
+    (folder / "tiny.toml").write_text(TINY_TOML)
+    (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(32)))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        code = main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
+                     "--out", str(folder / "plate.stl"), "--no-validate", "--quiet"])
+    finally:
+        torch.set_num_threads(threads)
+    assert code == 0
+    yield folder

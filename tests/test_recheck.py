@@ -7,7 +7,6 @@ import csv
 import io
 import json
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,7 @@ from aperture_fab.cli import main
 from aperture_fab.config import parse_toml, resolve
 from aperture_fab.exporters import holes_csv, read_holes_csv
 from aperture_fab.fabricate import fabrication_settings
-from aperture_fab.images import encode_png, srgb_to_linear
+from aperture_fab.images import srgb_to_linear
 from aperture_fab.layout import HoleLayout
 from aperture_fab.model import Renderer
 from aperture_fab.process import resolve_process
@@ -29,32 +28,13 @@ from aperture_fab.recheck import load_part, read_design, run_render
 from aperture_fab.report import validate_report
 from aperture_fab.rules import layout_violations
 from aperture_fab.scene import Plate
-from aperture_fab.targets import asymmetric_marker
 from aperture_fab.validate import layout_fractions
-from tests.conftest import TINY_TOML
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 FAST = ["--tolerance-samples", "2", "--mesh-samples", "16", "--quiet"]
 #: 8-bit sRGB PNGs hold a value to half a step.
 HALF_STEP = 0.5 / 255 + 1e-9
-
-
-@pytest.fixture(scope="module")
-def designed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A tiny design's folder (design.npz, design.toml, holes.csv, plate.stl) and marker.png."""
-    folder = tmp_path_factory.mktemp("designed")
-    (folder / "tiny.toml").write_text(TINY_TOML)
-    (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(32)))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        code = main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
-                     "--out", str(folder / "plate.stl"), "--no-validate", "--quiet"])
-    finally:
-        torch.set_num_threads(threads)
-    assert code == 0
-    yield folder
 
 
 @pytest.fixture

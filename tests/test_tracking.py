@@ -4,7 +4,6 @@ and the `aperture-fab display` command."""
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +14,12 @@ from PIL import Image
 from aperture_fab.baselines import elemental_display, regular_pinholes
 from aperture_fab.cli import main
 from aperture_fab.eyes import EyeStates
-from aperture_fab.images import encode_png, resample
+from aperture_fab.images import resample
 from aperture_fab.model import Renderer
 from aperture_fab.optimize import gain_mse_states, psnr_db
-from aperture_fab.targets import asymmetric_marker, natural
+from aperture_fab.targets import natural
 from aperture_fab.tracking import solve_display, tracked_views
-from tests.conftest import TINY_TOML, tiny_config
+from tests.conftest import tiny_config
 from tests.test_imports import CHILD, run_child
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -156,23 +155,6 @@ def test_an_eye_that_sees_nothing_is_refused(tiny: dict) -> None:
 
 
 # --- aperture-fab display ---------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def designed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A tiny design's folder (design.npz, design.toml, holes.csv, plate.stl) and marker.png."""
-    folder = tmp_path_factory.mktemp("designed")
-    (folder / "tiny.toml").write_text(TINY_TOML)
-    (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(32)))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        code = main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
-                     "--out", str(folder / "plate.stl"), "--no-validate", "--quiet"])
-    finally:
-        torch.set_num_threads(threads)
-    assert code == 0
-    yield folder
 
 
 def test_display_writes_the_frame_and_prints_both_psnrs(
