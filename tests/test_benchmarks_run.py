@@ -237,3 +237,49 @@ def test_bench_end_to_end_quick(tmp_path: Path) -> None:
     for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
         assert stage in stages and stages[stage] >= 0, stage
     assert figures["median_wall_s"] >= sum(stages.values())  # the stages run one after another
+
+
+@pytest.mark.slow
+def test_bench_display_quick_runs_and_writes_its_figures(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bench = _load("bench_display")
+    out = tmp_path / "display.json"
+    figures = bench.main(["--quick", "--device", "cpu", "--json", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(figures))
+    text = capsys.readouterr().out
+    assert "Goal 33 ms per frame" in text and "untracked" in text
+    assert figures["quick"] and figures["goal_frame_s"] == pytest.approx(0.033)
+    (cpu,) = figures["devices"]
+    assert cpu["device"] == "cpu" and _positive(cpu["setup_s"])
+    assert [row["iterations"] for row in cpu["latency"]] == list(bench.QUICK_ITERATIONS)
+    for row in cpu["latency"]:
+        assert _positive(row["frame_s"]) and _positive(row["checked_s"])
+        assert row["ratio_to_goal"] == pytest.approx(row["frame_s"] / 0.033)
+        assert len(row["frame_runs_s"]) == figures["repeats"] == 1
+    assert len(cpu["quality"]) == len(bench.QUICK_QUALITY)
+    for row in cpu["quality"]:
+        # keep_best: the tracked display is never worse than the untracked one.
+        assert row["tracked_psnr_db"] >= row["untracked_psnr_db"] > 0
+    assert cpu["compare"] is None
+
+
+def test_bench_display_arguments() -> None:
+    bench = _load("bench_display")
+    args = bench.parse_args(["--iterations", "1", "3", "--repeats", "2"])
+    assert args.iterations == [1, 3] and args.repeats == 2 and args.device == "all"
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--iterations", "0"])
+
+
+@pytest.mark.slow
+def test_bench_eyes_quick_runs_and_writes_its_figures(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "eyes.json"
+    figures = _load("bench_eyes").main(["--quick", "--json", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(figures))
+    (result,) = figures["targets"].values()
+    for key in ("as_built", "nominal_design", "open", "regular_pinholes"):
+        p = result["untracked"][key]
+        assert p["p10"] <= p["p50"] <= p["p90"]
+    assert set(result["tracked"]) == {"as_built", "regular_pinholes"}
+    assert "untracked p10 margin" in capsys.readouterr().out
