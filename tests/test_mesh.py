@@ -517,7 +517,9 @@ def test_large_plate_is_valid() -> None:
 
 
 def _run(command: list[str]) -> str:
-    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=False)
+    # admesh echoes the STL's 80-byte binary header, which need not be UTF-8.
+    done = subprocess.run(command, capture_output=True, text=True, errors="replace",
+                          timeout=300, check=False)
     return done.stdout + done.stderr
 
 
