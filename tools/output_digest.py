@@ -1,0 +1,85 @@
+"""Digest of a seeded design job's outputs, to prove a refactor changed no output byte.
+
+Runs `aperture-fab design` (small, seeded, every format), `validate` and `render` into a
+folder and prints one SHA-256 per file. Fields that legitimately differ between two runs of
+the same code are normalized first: stage timings, the report's digest of them, the 3MF zip
+timestamps, the DXF header (dates, GUIDs), the STEP header date, the work folder's path.
+
+    python tools/output_digest.py --work /tmp/digest > before.txt
+    (change the code)
+    python tools/output_digest.py --work /tmp/digest2 > after.txt
+    diff before.txt after.txt     # empty: every output is byte-identical after normalizing
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import re
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+DESIGN_FLAGS = ["--iterations", "12", "--view-pixels", "48", "48", "--tolerance-samples", "2",
+                "--mesh-samples", "8", "--step", "--quiet", "--seed", "7"]
+TIMING_SECTION = re.compile(r'<section id="timings">.*?</section>', re.DOTALL)
+REPORT_DIGEST = re.compile(r"report digest [0-9a-f]+")
+DXF_ENTITIES = re.compile(rb"\n\s*2\r?\nENTITIES\r?\n.*?\nENDSEC", re.DOTALL)
+STEP_DATE = re.compile(rb"FILE_NAME\('([^']*)','[^']*'")
+
+
+def normalized(path: Path, work: Path) -> bytes:
+    """The file's bytes with run-to-run noise (timings, dates, the work folder) removed."""
+    data = path.read_bytes().replace(str(work).encode(), b"<work>")
+    if path.suffix == ".3mf":
+        with zipfile.ZipFile(path) as z:
+            return b"".join(name.encode() + z.read(name) for name in sorted(z.namelist()))
+    if path.suffix == ".dxf":
+        # The header holds dates and GUIDs, and ezdxf orders its CLASSES section by a set.
+        found = DXF_ENTITIES.search(data)
+        return found.group(0) if found else data
+    if path.suffix == ".step":
+        return STEP_DATE.sub(rb"FILE_NAME('\1','-'", data)
+    if path.name == "report.json":
+        report = json.loads(data)
+        report.pop("timings_s", None)
+        return json.dumps(report, sort_keys=True).encode()
+    if path.suffix == ".html":
+        text = TIMING_SECTION.sub("", data.decode())
+        return REPORT_DIGEST.sub("", text).encode()
+    return data
+
+
+def run(args: list[str]) -> None:
+    subprocess.run(args, check=True, stdout=subprocess.DEVNULL)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, required=True, help="empty folder for the runs")
+    args = parser.parse_args()
+    exe = str(Path(sys.executable).with_name("aperture-fab"))
+    targets = args.work / "targets"
+    subprocess.run([sys.executable, "examples/make_targets.py", "--out", str(targets)],
+                   check=True, stdout=subprocess.DEVNULL)
+    design = args.work / "design"
+    run([exe, "design", str(targets / "digit-3.png"), "--out", str(design / "plate.stl"),
+         *DESIGN_FLAGS])
+    run([exe, "validate", str(design / "plate.stl"), "--config", str(design / "design.toml"),
+         str(targets / "digit-3.png"), "--out", str(args.work / "validate"),
+         "--tolerance-samples", "2", "--mesh-samples", "8", "--quiet"])
+    run([exe, "render", str(design / "design.npz"), str(targets / "digit-3.png"),
+         "--config", str(design / "design.toml"), "--eye", "0.5,-0.5",
+         "--out", str(args.work / "render.png")])
+    for path in sorted(p for p in args.work.rglob("*") if p.is_file()):
+        if targets in path.parents:
+            continue
+        digest = hashlib.sha256(normalized(path, args.work)).hexdigest()
+        print(f"{digest[:16]}  {path.relative_to(args.work)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
