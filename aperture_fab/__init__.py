@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from aperture_fab import targets
     from aperture_fab.config import Config, resolve
+    from aperture_fab.optics.scene import Display, Eye, Plate, Scene
     from aperture_fab.pipeline import DesignResult, design
-    from aperture_fab.scene import Display, Eye, Plate, Scene
 
 __all__ = [
     "Config",
@@ -33,10 +33,10 @@ __version__ = "0.1.0"
 _LAZY: dict[str, tuple[str, str | None]] = {
     "Config": ("aperture_fab.config", "Config"),
     "DesignResult": ("aperture_fab.pipeline", "DesignResult"),
-    "Display": ("aperture_fab.scene", "Display"),
-    "Eye": ("aperture_fab.scene", "Eye"),
-    "Plate": ("aperture_fab.scene", "Plate"),
-    "Scene": ("aperture_fab.scene", "Scene"),
+    "Display": ("aperture_fab.optics.scene", "Display"),
+    "Eye": ("aperture_fab.optics.scene", "Eye"),
+    "Plate": ("aperture_fab.optics.scene", "Plate"),
+    "Scene": ("aperture_fab.optics.scene", "Scene"),
     "design": ("aperture_fab.pipeline", "design"),
     "resolve": ("aperture_fab.config", "resolve"),
     "targets": ("aperture_fab.targets", None),

@@ -101,7 +101,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _load_config(args: argparse.Namespace) -> Any:
-    from aperture_fab.config import parse_toml, resolve
+    from aperture_fab.config.config import parse_toml, resolve
 
     file_dict = None
     if args.config is not None:
@@ -115,7 +115,7 @@ def _load_config(args: argparse.Namespace) -> Any:
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from aperture_fab.presets import PRESETS, preset_summary
+    from aperture_fab.config.presets import PRESETS, preset_summary
 
     for name in PRESETS:
         print(preset_summary(name))
@@ -145,14 +145,14 @@ def _add_validation_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
-    from aperture_fab.fabricate import fabrication_settings
+    from aperture_fab.fabrication.part import fabrication_settings
 
     return fabrication_settings(extra, {"process": args.process, "force": args.force,
                                         "step": args.step})
 
 
 def _cmd_processes(args: argparse.Namespace) -> int:
-    from aperture_fab.process import PROCESSES, process_summary
+    from aperture_fab.fabrication.process import PROCESSES, process_summary
 
     for process in PROCESSES.values():
         print(process_summary(process))
@@ -163,9 +163,9 @@ def _cmd_processes(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from aperture_fab.config import parse_toml, resolve
-    from aperture_fab.fabricate import FILE_NAMES, PART_FORMATS, PartFormat, make_part
-    from aperture_fab.pipeline import output_folder, write_part
+    from aperture_fab.config.config import parse_toml, resolve
+    from aperture_fab.fabrication.part import FILE_NAMES, PART_FORMATS, PartFormat, make_part
+    from aperture_fab.pipeline.design_job import output_folder, write_part
 
     config_path = args.config or args.design.parent / "design.toml"
     try:
@@ -211,7 +211,7 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
     and target, then the eye-distribution verdict (or why there is none)."""
     import textwrap
 
-    from aperture_fab.report_html import LEVEL_WORDS, NOT_JUDGED
+    from aperture_fab.validation.report_html import LEVEL_WORDS, NOT_JUDGED
 
     headline = metrics.get("eye_distribution")
     if headline is None:
@@ -239,9 +239,9 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
-    from aperture_fab.optimize import Interrupted
-    from aperture_fab.pipeline import output_folder, run_design
-    from aperture_fab.validate import validation_settings
+    from aperture_fab.optimize.optimizer import Interrupted
+    from aperture_fab.pipeline.design_job import output_folder, run_design
+    from aperture_fab.validation.validate import validation_settings
 
     config = _load_config(args)
     fabrication = _fabrication(args, config.extra)
@@ -276,7 +276,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from aperture_fab.recheck import run_validate
+    from aperture_fab.pipeline.recheck import run_validate
 
     result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
                           process=args.process, keep_display=args.keep_display,
@@ -309,7 +309,7 @@ def _pair_mm(text: str, flag: str) -> tuple[float, float]:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from aperture_fab.recheck import run_render
+    from aperture_fab.pipeline.recheck import run_render
 
     focus: Any = None
     if args.focus is not None:
@@ -327,7 +327,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_display(args: argparse.Namespace) -> int:
-    from aperture_fab.recheck import run_display
+    from aperture_fab.pipeline.recheck import run_display
 
     focus: Any = None
     if args.focus is not None:

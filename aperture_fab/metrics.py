@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from aperture_fab.optimize import psnr_db
+from aperture_fab.optimize.optimizer import psnr_db
 
 __all__ = ["METRIC_KEYS", "gain", "metrics", "summarize"]
 

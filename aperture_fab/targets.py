@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from aperture_fab.images import srgb_to_linear
+from aperture_fab.io.images import srgb_to_linear
 
 __all__ = [
     "EXAMPLES",

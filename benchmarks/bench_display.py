@@ -1,4 +1,4 @@
-"""Latency and quality of tracked displays (aperture_fab.tracking.solve_display) per frame.
+"""Latency and quality of tracked displays (aperture_fab.optimize.tracking.solve_display) per frame.
 
 Run: .venv/bin/python benchmarks/bench_display.py [--device all|cpu|cuda] [--repeats 5]
      [--iterations 1 2 5 10] [--compare] [--quick] [--json PATH]
@@ -17,7 +17,8 @@ the nominal eye (`baselines.elemental_display`).
 - quality: PSNR after gain (dB) of the untracked display and the tracked one (the default
   iterations, keep_best) for eye offsets (0, 0), (1, 0), (2, 0) mm and pupils 3 and 6 mm.
 - --compare: PSNR after gain of every iterate, 0 to 10 iterations, for MLEM and projected Adam
-  at a few eye states (the measurement behind the solver choice in aperture_fab/tracking.py).
+  at a few eye states (the measurement behind the solver choice in
+  aperture_fab/optimize/tracking.py).
 
 Devices: the CPU (fused Numba kernels) and, when torch.cuda.is_available(), CUDA (the torch
 path; a new eye state builds its pair table, which is inside the frame time). --quick (the
@@ -39,13 +40,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.baselines import elemental_display, regular_pinholes
-from aperture_fab.config import resolve
-from aperture_fab.eyes import EyeStates
-from aperture_fab.images import resample
-from aperture_fab.model import Renderer
+from aperture_fab.config.config import resolve
+from aperture_fab.io.images import resample
+from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.tracking import DEFAULT_ITERATIONS, solve_display, tracked_views
 from aperture_fab.targets import natural
-from aperture_fab.tracking import DEFAULT_ITERATIONS, solve_display, tracked_views
 
 #: Video rate: one frame in 33 ms (30 frames per second).
 GOAL_FRAME_S = 0.033

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.images import encode_png
-from aperture_fab.presets import DEFAULT_PRESET, PRESETS
+from aperture_fab.config.presets import DEFAULT_PRESET, PRESETS
+from aperture_fab.io.images import encode_png
 from aperture_fab.targets import EXAMPLES
 
 GOAL_S = 180.0

@@ -14,7 +14,8 @@ ellipse, pupils 3 to 6 mm, focus at infinity), PSNR after gain:
 - untracked: the part's display for every state; beside it the open display (no plate, the
   target shown), the best regular pinhole array (elemental images for the nominal eye) and the
   nominal-point design (designed over the same field of view), judged the same way;
-- tracked: the display solved per state from the part's (aperture_fab.tracking.solve_display,
+- tracked: the display solved per state from the part's
+(aperture_fab.optimize.tracking.solve_display,
   MLEM, --tracked-iterations per state) on the first --tracked-states states of the set, for
   the default part and for the regular pinhole array.
 
@@ -36,18 +37,18 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.baselines import elemental_display, regular_pinholes
-from aperture_fab.config import resolve
-from aperture_fab.eyes import percentiles
-from aperture_fab.fabricate import FabricationSettings
-from aperture_fab.images import resample
-from aperture_fab.model import Renderer
-from aperture_fab.pipeline import design
-from aperture_fab.process import PROCESSES
-from aperture_fab.robustness import Variant, judge_eyes
+from aperture_fab.config.config import resolve
+from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.io.images import resample
+from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.eyes import percentiles
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.tracking import tracked_views
+from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.tracking import tracked_views
-from aperture_fab.validate import layout_fractions
+from aperture_fab.validation.robustness import Variant, judge_eyes
+from aperture_fab.validation.validate import layout_fractions
 
 PRESET, NOMINAL_PRESET, PROCESS = "near-eye", "near-eye-nominal", "resin"
 DEFAULT_TARGETS = ("digit-3", "letter-A", "pixel-art", "natural")

@@ -20,9 +20,9 @@ from typing import TypeVar
 
 import numpy as np
 
-from aperture_fab.exporters import dxf_bytes, stl_bytes, threemf_bytes
-from aperture_fab.layout import HoleLayout
-from aperture_fab.mesh import build_mesh
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import build_mesh
+from aperture_fab.io.formats import dxf_bytes, stl_bytes, threemf_bytes
 
 #: Square grids: 784, 10,000 and 90,000 holes (every cell open).
 SIDES = (28, 100, 300)

@@ -1,4 +1,4 @@
-"""Speed, profile and peak memory of the optimizer (aperture_fab.optimize.optimize).
+"""Speed, profile and peak memory of the optimizer (aperture_fab.optimize.optimizer.optimize).
 
 Run: .venv/bin/python benchmarks/bench_optimize.py [--device auto|cpu|cuda] [--repeats 3]
      [--quick] [--large] [--json PATH]
@@ -25,7 +25,8 @@ alike and the ratios between cases stay fair):
   reference the single-state and 16-state goals are measured against, side by side in this run.
 - large (--large only, meant for a GPU): the nominal eye with 512 x 512 cells at 0.05 mm on a
   25.6 mm, 1024 x 1024 pixel display, 512 x 512 view: seconds per iteration (3 after 1
-  warm-up). A case whose estimated memory (`aperture_fab.budget`) is over the budget is refused
+  warm-up). A case whose estimated memory (`aperture_fab.optimize.budget`) is over the budget is
+  refused
   before any work and reported as such (the refusal message in the table).
 
 Every timed run is one `optimize` call with a checkpoint callback after every iteration that
@@ -33,7 +34,8 @@ stamps the time; the cost of making a checkpoint (estimated by copying the last 
 out. Per iteration, the loss's forward and backward are timed separately: `optimize`'s
 `_design_loss` is wrapped (in the child only) to stamp the forward, and identity autograd nodes
 on its output and on its plate and display inputs stamp the start and the end of the backward;
-the renderer kernels (`aperture_fab.kernels.view_forward` / `view_backward`) are timed on their
+the renderer kernels (`aperture_fab.optics.kernels.view_forward` / `view_backward`) are timed on
+their
 own too. The rest of an iteration (Adam step, drawing eye states) is the remainder. The backend
 of a case is forced by handing `optimize` a Renderer with that backend (patched in the child).
 s/iter: the median over the repeats of the iterations after the warm-up ones (the first builds
@@ -56,7 +58,7 @@ copy; a kernel far below it is bound by arithmetic, not memory.
 
 Peak memory: the increase of the child's peak RSS (VmHWM, reset before the case; ru_maxrss
 where /proc is absent) over its RSS before the case, and on CUDA torch.cuda.max_memory_allocated;
-beside it the estimate of `aperture_fab.budget.estimate_bytes` for the case.
+beside it the estimate of `aperture_fab.optimize.budget.estimate_bytes` for the case.
 --quick runs a few iterations (the smoke test), with the near-eye cases at a 32 x 32 view; a
 quick design is extended to the nominal iteration count at its per-iteration rate.
 """
@@ -85,13 +87,19 @@ from unittest import mock
 import numpy as np
 import torch
 
-import aperture_fab.optimize as optimize_module
-from aperture_fab import budget, kernels
-from aperture_fab.config import Config, resolve
-from aperture_fab.eyes import EyeStates, distribution_of
-from aperture_fab.images import is_grey, resample
-from aperture_fab.model import MAX_GRAD_BLOCKS_BYTES, Renderer
-from aperture_fab.optimize import initial_design, optimize, resolve_device, training_states
+import aperture_fab.optimize.optimizer as optimize_module
+from aperture_fab.config.config import Config, resolve
+from aperture_fab.io.images import is_grey, resample
+from aperture_fab.optics import kernels
+from aperture_fab.optics.eyes import EyeStates, distribution_of
+from aperture_fab.optics.model import MAX_GRAD_BLOCKS_BYTES, Renderer
+from aperture_fab.optimize import budget
+from aperture_fab.optimize.optimizer import (
+    initial_design,
+    optimize,
+    resolve_device,
+    training_states,
+)
 from aperture_fab.targets import EXAMPLES
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -220,7 +228,7 @@ def case_config(case: Case, device: str, iterations: int, quick: bool = False) -
 
 def prepare_target(config: Config, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One target on the view grid (1, C, ny, nx) and on the display grid (1, C, H, W), one
-    channel when grey: what aperture_fab.pipeline does before optimizing."""
+    channel when grey: what aperture_fab.pipeline.design_job does before optimizing."""
     im = image[:1] if is_grey(image) else image
     scene = config.scene
     return (resample(im, scene.eye.view_pixels)[None],
@@ -296,7 +304,7 @@ def kernel_pairs(renderer: Renderer, open_fraction: np.ndarray, states: EyeState
     """(samples, evaluations): the (view pixel, hole) pairs for which the CPU kernel reads a
     stack sample in one pass over `states`, and the (state, view pixel, hole) triples it
     evaluates (a pupil share and a weighted sum each). Both count the holes of the kernel's
-    walk (`aperture_fab.kernels._span`, mirrored here: at infinite focus the hole axes within
+    walk (`aperture_fab.optics.kernels._span`, mirrored here: at infinite focus the hole axes within
     R_b + margin of the footprint centre moved by -t v / 2, margin the largest hole radius;
     otherwise within keep + extra of the footprint centre; per row a chord) whose lens has area
     (open_fraction: (rows, cols)). Samples are per state, or, when every state focuses at
@@ -804,7 +812,7 @@ NOTES = "\n".join([
     "vs ref = its time / ours.",
     "setup: Renderer construction (torch: plus the pair table), warm, after a run.",
     "RSS MiB: increase of the case's peak resident memory (max over repeats); est MiB:",
-    "  aperture_fab.budget's estimate; CUDA MiB: torch.cuda.max_memory_allocated.",
+    "  aperture_fab.optimize.budget's estimate; CUDA MiB: torch.cuda.max_memory_allocated.",
     "fwd / bwd s: the loss's forward and backward (medians); other: the rest of an iteration",
     "  (Adam step, eye states, bookkeeping; median of s/iter - fwd - bwd per iteration);",
     "  kfwd / kbwd: the CPU kernels alone. evals/iter: (state, view pixel, hole) triples the",

@@ -3,7 +3,7 @@
 Run: .venv/bin/python benchmarks/bench_quality.py [--iterations N] [--targets digit-3 natural]
      [--device auto|cpu|cuda] [--json PATH]
 
-For each target, one `aperture_fab.pipeline.design` run with the `near-eye` preset (its
+For each target, one `aperture_fab.pipeline.design_job.design` run with the `near-eye` preset (its
 iterations and plateau stop unless --iterations is given) for the resin process, then the PSNR
 after the least-squares gain (dB, nominal eye position) of: the open display showing the target
 (no plate), a regular pinhole array showing elemental images, the optimizer's start, the
@@ -30,14 +30,14 @@ from typing import Any
 
 import torch
 
-from aperture_fab.config import resolve
-from aperture_fab.fabricate import FabricationSettings
-from aperture_fab.model import Renderer
-from aperture_fab.optimize import gain_mse, psnr_db, resolve_device
-from aperture_fab.pipeline import design
-from aperture_fab.process import PROCESSES
+from aperture_fab.config.config import resolve
+from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.optimizer import gain_mse, psnr_db, resolve_device
+from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.validate import layout_fractions
+from aperture_fab.validation.validate import layout_fractions
 
 PRESET = "near-eye"
 PROCESS = "resin"

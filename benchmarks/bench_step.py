@@ -1,4 +1,5 @@
-"""Time and peak memory of STEP export (aperture_fab.step.step_bytes) against the hole count.
+"""Time and peak memory of STEP export (aperture_fab.fabrication.step.step_bytes) against the hole
+count.
 
 Run: .venv/bin/python benchmarks/bench_step.py [--repeats 3] [--sides 28 50 100] [--tilted]
 
@@ -20,7 +21,7 @@ import time
 
 import numpy as np
 
-from aperture_fab.layout import HoleLayout
+from aperture_fab.fabrication.layout import HoleLayout
 
 #: Cell pitch and plate thickness of the benchmark plates (typical resin print), mm.
 PITCH_MM = 0.5
@@ -62,7 +63,7 @@ def measure(side: int, repeats: int, tilted: bool) -> dict[str, float]:
     """Run step_bytes `repeats` times in this process; median seconds, peak RSS, file size."""
     from OCP import STEPControl  # noqa: F401  # the kernel's own footprint belongs to the baseline
 
-    from aperture_fab.step import step_bytes
+    from aperture_fab.fabrication.step import step_bytes
 
     layout = grid_layout(side, tilted)
     baseline_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB

@@ -3,7 +3,7 @@
 TINY is a 4 x 4 mm display of 32 x 32 pixels behind a 16 x 16 plate of 0.25 mm cells, seen on a
 16 x 16 view, on the CPU, for a handful of iterations, from the nominal eye point (preset
 near-eye-nominal; tiny_config("near-eye") samples the eye distribution). Its overrides use the
-dotted keys of `aperture_fab.config.resolve`; TINY_TOML is the same as a config file for the
+dotted keys of `aperture_fab.config.config.resolve`; TINY_TOML is the same as a config file for the
 CLI. Modules that run the optimizer use `pytestmark = pytest.mark.usefixtures("one_torch_thread")`.
 """
 
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from aperture_fab.config import Config, resolve
-from aperture_fab.images import encode_png
+from aperture_fab.config.config import Config, resolve
+from aperture_fab.io.images import encode_png
 from aperture_fab.targets import asymmetric_marker, pixel_art
 
 TINY_ITERATIONS = 8

@@ -73,7 +73,7 @@ def test_case_scenes(bench_optimize: ModuleType, name: str, cells: tuple[int, in
 def test_case_eye_states_and_backends(bench_optimize: ModuleType) -> None:
     """The issue-9 cases: 16 drawn states, one drawn state, the nominal state on the default
     backend and on the torch path (the reference), side by side on the same scene."""
-    from aperture_fab.eyes import distribution_of
+    from aperture_fab.optics.eyes import distribution_of
 
     cases = bench_optimize.CASES
     configs = {name: bench_optimize.case_config(cases[name], "cpu", 1)
@@ -96,8 +96,8 @@ def test_kernel_pairs_and_bytes(bench_optimize: ModuleType) -> None:
     states share them (all focused at infinity)."""
     import numpy as np
 
-    from aperture_fab.eyes import EyeStates
-    from aperture_fab.model import Renderer
+    from aperture_fab.optics.eyes import EyeStates
+    from aperture_fab.optics.model import Renderer
 
     config = bench_optimize.case_config(bench_optimize.CASES["nominal"], "cpu", 1, quick=True)
     renderer = Renderer(config.scene)
@@ -121,7 +121,7 @@ def test_kernel_pairs_and_bytes(bench_optimize: ModuleType) -> None:
 
 def test_prepare_target_matches_pipeline(bench_optimize: ModuleType) -> None:
     """The benchmark's targets are what pipeline.design would optimize for (grey: 1 channel)."""
-    from aperture_fab.images import resample
+    from aperture_fab.io.images import resample
     from aperture_fab.targets import EXAMPLES
 
     config = bench_optimize.case_config(bench_optimize.CASES["seed-28"], "cpu", 1)

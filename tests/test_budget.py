@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from aperture_fab import budget
-from aperture_fab.config import resolve
-from aperture_fab.model import Renderer
+from aperture_fab.config.config import resolve
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize import budget
 
 GB = 1e9
 
@@ -149,7 +149,7 @@ def test_default_budget_share_and_environment(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_optimize_refuses_before_any_work(monkeypatch: pytest.MonkeyPatch) -> None:
-    import aperture_fab.optimize as optimize_module
+    import aperture_fab.optimize.optimizer as optimize_module
 
     config = _config("seed")
     monkeypatch.setenv(budget.ENV_BUDGET_GB, "0.000001")
@@ -167,10 +167,10 @@ _PROBE = r"""
 import functools, gc, json, sys
 from unittest import mock
 import numpy as np, torch
-import aperture_fab.optimize as om
-from aperture_fab import budget
-from aperture_fab.config import resolve
-from aperture_fab.model import Renderer
+import aperture_fab.optimize.optimizer as om
+from aperture_fab.optimize import budget
+from aperture_fab.config.config import resolve
+from aperture_fab.optics.model import Renderer
 
 def status(key):
     with open("/proc/self/status") as f:

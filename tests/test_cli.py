@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-import aperture_fab.optimize as optimize_module
+import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.cli import OVERRIDES, main
-from aperture_fab.config import parse_toml, resolve
-from aperture_fab.presets import PRESET_DESCRIPTIONS, PRESETS
+from aperture_fab.config.config import parse_toml, resolve
+from aperture_fab.config.presets import PRESET_DESCRIPTIONS, PRESETS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

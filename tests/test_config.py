@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
-from aperture_fab.presets import DEFAULT_PRESET, PRESET_DESCRIPTIONS, PRESETS, preset_summary
-from aperture_fab.scene import Display, Eye, Plate
-from aperture_fab.settings import OptimizerSettings
+from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.config.presets import DEFAULT_PRESET, PRESET_DESCRIPTIONS, PRESETS, preset_summary
+from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.optics.scene import Display, Eye, Plate
 
 
 def full_fov_deg(size_mm: float, distance_mm: float) -> float:

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import optimize, special
 
-from aperture_fab.diffraction import (
+from aperture_fab.optics.diffraction import (
     AIRY_FIRST_ZERO_X,
     KERNEL_ENERGY,
     WAVELENGTHS_NM,
@@ -24,8 +24,8 @@ from aperture_fab.diffraction import (
     diffraction_view,
     hole_classes,
 )
-from aperture_fab.model import Renderer
-from aperture_fab.scene import Display, Eye, Plate, Scene
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.scene import Display, Eye, Plate, Scene
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -12,7 +12,9 @@ import zipfile
 import numpy as np
 import pytest
 
-from aperture_fab.exporters import (
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import build_mesh, check_mesh
+from aperture_fab.io.formats import (
     dxf_bytes,
     holes_csv,
     read_stl,
@@ -20,8 +22,6 @@ from aperture_fab.exporters import (
     svg_text,
     threemf_bytes,
 )
-from aperture_fab.layout import HoleLayout
-from aperture_fab.mesh import build_mesh, check_mesh
 
 CORE = "{http://schemas.microsoft.com/3dmanufacturing/core/2015/02}"
 SVG = "{http://www.w3.org/2000/svg}"

@@ -10,15 +10,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.config import resolve
-from aperture_fab.eyes import (
+from aperture_fab.config.config import resolve
+from aperture_fab.optics.eyes import (
     EyeDistribution,
     EyeStates,
     distribution_of,
     iteration_seed,
     percentiles,
 )
-from aperture_fab.scene import Eye
+from aperture_fab.optics.scene import Eye
 
 NEAR_EYE = EyeDistribution(eyebox_mm=(4.0, 4.0), pupil_range_mm=(3.0, 6.0), nominal_pupil_mm=4.0,
                            focus_range_diopters=(0.0, 0.5))

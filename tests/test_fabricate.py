@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from aperture_fab.cli import main
-from aperture_fab.config import resolve
-from aperture_fab.exporters import read_stl
-from aperture_fab.fabricate import design_bounds, fabrication_settings, make_part
-from aperture_fab.images import encode_png
-from aperture_fab.mesh import check_mesh, mesh_volume_mm3
-from aperture_fab.process import PROCESSES, UnmakeableError, resolve_process
+from aperture_fab.config.config import resolve
+from aperture_fab.fabrication.mesh import check_mesh, mesh_volume_mm3
+from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
+from aperture_fab.fabrication.process import PROCESSES, UnmakeableError, resolve_process
+from aperture_fab.io.formats import read_stl
+from aperture_fab.io.images import encode_png
 from aperture_fab.targets import digit
 
 TINY = {

@@ -14,20 +14,20 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.config import Config
-from aperture_fab.fabricate import (
+from aperture_fab.config.config import Config
+from aperture_fab.fabrication.part import (
     FabricationSettings,
     design_bounds,
     drawn_fractions,
     eye_distance_mm,
     make_part,
 )
-from aperture_fab.images import resample
-from aperture_fab.optimize import _snapped, optimize
-from aperture_fab.process import PROCESSES, resolve_process
-from aperture_fab.quantize import MadeSizes, made_sizes
+from aperture_fab.fabrication.process import PROCESSES, resolve_process
+from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
+from aperture_fab.io.images import resample
+from aperture_fab.optimize.optimizer import _snapped, optimize
 from aperture_fab.targets import asymmetric_marker
-from aperture_fab.validate import layout_fractions
+from aperture_fab.validation.validate import layout_fractions
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

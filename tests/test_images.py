@@ -1,4 +1,4 @@
-"""Tests for aperture_fab.images: sRGB curves, decoding, resampling, PNG encoding."""
+"""Tests for aperture_fab.io.images: sRGB curves, decoding, resampling, PNG encoding."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from PIL import Image
 
-from aperture_fab.images import (
+from aperture_fab.io.images import (
     MAX_IMAGE_PIXELS,
     decode_image,
     encode_png,

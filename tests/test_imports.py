@@ -85,7 +85,8 @@ def test_light_public_names_do_not_import_torch() -> None:
 
 
 def test_lazy_public_names_resolve_to_their_definitions() -> None:
-    from aperture_fab import config, pipeline, scene, targets
+    from aperture_fab import config, pipeline, targets
+    from aperture_fab.optics import scene
 
     assert callable(aperture_fab.design) and aperture_fab.design is pipeline.design
     assert inspect.isclass(aperture_fab.DesignResult)

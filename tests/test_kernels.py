@@ -1,4 +1,4 @@
-"""The fused CPU kernels (aperture_fab.kernels) against the torch path (pair tables and
+"""The fused CPU kernels (aperture_fab.optics.kernels) against the torch path (pair tables and
 grid_sample), values and gradients, and a batch of eye states against each state alone."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import pytest
 import torch
 from test_model import make_scene
 
-from aperture_fab.eyes import EyeStates
-from aperture_fab.model import Renderer
-from aperture_fab.optimize import combine_states, gain_mse, gain_mse_states
+from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.optimizer import combine_states, gain_mse, gain_mse_states
 
 
 def states(offsets, pupils, diopters) -> EyeStates:

@@ -13,9 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.exporters import read_stl, stl_bytes
-from aperture_fab.layout import HoleLayout
-from aperture_fab.mesh import (
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import (
     PlateMesh,
     build_mesh,
     check_mesh,
@@ -23,6 +22,7 @@ from aperture_fab.mesh import (
     mesh_volume_mm3,
     segment_count,
 )
+from aperture_fab.io.formats import read_stl, stl_bytes
 
 #: Largest lateral shift of a tilted hole at either face, as a share of the pitch.
 MAX_SHIFT_FRACTION = 0.1

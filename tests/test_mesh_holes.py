@@ -1,4 +1,5 @@
-"""Holes read back from a plate mesh (aperture_fab.mesh_holes) against the layout it was built
+"""Holes read back from a plate mesh (aperture_fab.fabrication.mesh_holes) against the layout it
+was built
 from. Parts are built with make_part and, where said, written as STL and read back (float32)."""
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.exporters import read_stl, stl_bytes
-from aperture_fab.fabricate import FabricationSettings, Part, make_part
-from aperture_fab.layout import HoleLayout
-from aperture_fab.mesh import PlateMesh, build_mesh, segment_count
-from aperture_fab.mesh_holes import hole_layout_from_mesh, mesh_hole_loops
-from aperture_fab.process import PROCESSES
-from aperture_fab.scene import Display, Eye, Plate, Scene
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, segment_count
+from aperture_fab.fabrication.mesh_holes import hole_layout_from_mesh, mesh_hole_loops
+from aperture_fab.fabrication.part import FabricationSettings, Part, make_part
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.io.formats import read_stl, stl_bytes
+from aperture_fab.optics.scene import Display, Eye, Plate, Scene
 
 PROCESS = PROCESSES["photomask"]
 PITCH_MM = 0.3

@@ -10,8 +10,8 @@ import pytest
 import torch
 from reference_tracer import trace_view
 
-from aperture_fab.model import Renderer, render_open
-from aperture_fab.scene import Display, Eye, Plate, Scene, display_fov_deg
+from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
 
 
 def make_scene(*, cells=(12, 12), pitch=0.25, gap=10.0, thickness=0.0, axis="straight",

@@ -14,11 +14,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import aperture_fab.optimize as optimize_module
-from aperture_fab.config import Config
-from aperture_fab.images import resample
-from aperture_fab.model import Renderer
-from aperture_fab.optimize import (
+import aperture_fab.optimize.optimizer as optimize_module
+from aperture_fab.config.config import Config
+from aperture_fab.io.images import resample
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.optimizer import (
     DivergedError,
     Interrupted,
     MaskDesign,
@@ -459,7 +459,7 @@ def test_interrupted_state_can_be_interrupted_and_resumed_again(
 
 def test_each_iteration_draws_its_own_eye_states_reproducibly(make_config: MakeConfig) -> None:
     """States come from (seed, iteration): fresh each iteration, the same on every run."""
-    from aperture_fab.optimize import training_states
+    from aperture_fab.optimize.optimizer import training_states
 
     config = make_config("near-eye")
     scene, settings = config.scene, config.optimizer

@@ -15,12 +15,18 @@ import pytest
 import torch
 from PIL import Image
 
-import aperture_fab.optimize as optimize_module
-import aperture_fab.pipeline as pipeline_module
-from aperture_fab.config import Config, parse_toml, resolve
-from aperture_fab.images import encode_png, linear_to_srgb, resample
-from aperture_fab.optimize import Interrupted
-from aperture_fab.pipeline import DesignResult, design, load_targets, run_design, write_atomic
+import aperture_fab.optimize.optimizer as optimize_module
+import aperture_fab.pipeline.design_job as pipeline_module
+from aperture_fab.config.config import Config, parse_toml, resolve
+from aperture_fab.io.images import encode_png, linear_to_srgb, resample
+from aperture_fab.optimize.optimizer import Interrupted
+from aperture_fab.pipeline.design_job import (
+    DesignResult,
+    design,
+    load_targets,
+    run_design,
+    write_atomic,
+)
 from aperture_fab.targets import asymmetric_marker, checker, pixel_art
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from aperture_fab.process import (
+from aperture_fab.fabrication.process import (
     PROCESSES,
     Process,
     UnmakeableError,
@@ -21,7 +21,7 @@ from aperture_fab.process import (
     process_summary,
     resolve_process,
 )
-from aperture_fab.scene import Plate
+from aperture_fab.optics.scene import Plate
 
 
 def plate(pitch: float = 0.25, thickness: float = 0.05, cells: tuple[int, int] = (8, 6)) -> Plate:

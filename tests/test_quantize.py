@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.layout import HoleLayout
-from aperture_fab.process import PROCESSES, Process, UnmakeableError, resolve_process
-from aperture_fab.quantize import layout_stats, quantize
-from aperture_fab.scene import Plate
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.process import PROCESSES, Process, UnmakeableError, resolve_process
+from aperture_fab.fabrication.quantize import layout_stats, quantize
+from aperture_fab.optics.scene import Plate
 
 TOL = 1e-9
 

@@ -17,18 +17,18 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from aperture_fab.cli import main
-from aperture_fab.config import parse_toml, resolve
-from aperture_fab.exporters import holes_csv, read_holes_csv
-from aperture_fab.fabricate import fabrication_settings
-from aperture_fab.images import srgb_to_linear
-from aperture_fab.layout import HoleLayout
-from aperture_fab.model import Renderer
-from aperture_fab.process import resolve_process
-from aperture_fab.recheck import load_part, read_design, run_render
-from aperture_fab.report import validate_report
-from aperture_fab.rules import layout_violations
-from aperture_fab.scene import Plate
-from aperture_fab.validate import layout_fractions
+from aperture_fab.config.config import parse_toml, resolve
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.part import fabrication_settings
+from aperture_fab.fabrication.process import resolve_process
+from aperture_fab.fabrication.rules import layout_violations
+from aperture_fab.io.formats import holes_csv, read_holes_csv
+from aperture_fab.io.images import srgb_to_linear
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.scene import Plate
+from aperture_fab.pipeline.recheck import load_part, read_design, run_render
+from aperture_fab.validation.report import validate_report
+from aperture_fab.validation.validate import layout_fractions
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -265,7 +265,7 @@ def test_render_matches_the_renderer_and_the_png(copy: Path,
     got = png_linear(out)
     assert got.shape == want.shape
     # Compare in sRGB samples: the PNG holds each to half a step.
-    from aperture_fab.images import linear_to_srgb
+    from aperture_fab.io.images import linear_to_srgb
 
     assert np.max(np.abs(linear_to_srgb(got) - linear_to_srgb(scaled))) <= HALF_STEP
 

@@ -21,8 +21,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from aperture_fab.config import to_dict
-from aperture_fab.figures import (
+from aperture_fab.config.config import to_dict
+from aperture_fab.metrics import METRIC_KEYS
+from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
     figure_hole_map,
@@ -31,8 +32,7 @@ from aperture_fab.figures import (
     figure_thumbnails,
     figure_views,
 )
-from aperture_fab.metrics import METRIC_KEYS
-from aperture_fab.report import (
+from aperture_fab.validation.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
     SCHEMA_VERSION,
@@ -42,7 +42,7 @@ from aperture_fab.report import (
     validate_report,
     views_npz,
 )
-from aperture_fab.report_html import SECTION_TITLES, report_html, verdicts
+from aperture_fab.validation.report_html import SECTION_TITLES, report_html, verdicts
 from tests.conftest import tiny_config
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from aperture_fab.cli import _print_eye_distribution
-from aperture_fab.evidence import eye_distribution_block, eye_figures
-from aperture_fab.eyes import EyeDistribution
-from aperture_fab.report import (
+from aperture_fab.optics.eyes import EyeDistribution
+from aperture_fab.validation.evidence import eye_distribution_block, eye_figures
+from aperture_fab.validation.report import (
     EYE_TOPIC,
     FIGURE_KEYS,
     build_report,
@@ -21,8 +21,8 @@ from aperture_fab.report import (
     report_json,
     validate_report,
 )
-from aperture_fab.report_html import EYE_MARGIN_DB, eye_verdict, report_html, verdicts
-from aperture_fab.robustness import EyeQuality, grid_offsets
+from aperture_fab.validation.report_html import EYE_MARGIN_DB, eye_verdict, report_html, verdicts
+from aperture_fab.validation.robustness import EyeQuality, grid_offsets
 from tests.test_report import all_figures, complete_inputs
 
 NAMES = ("letter",)

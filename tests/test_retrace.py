@@ -1,4 +1,5 @@
-"""The view traced through the written mesh (aperture_fab.retrace) against the fast model, exact
+"""The view traced through the written mesh (aperture_fab.optics.retrace) against the fast model,
+exact
 light levels, the two samplings against each other and its own error estimate. Every part is
 built with make_part (or build_mesh), written as STL and read back, so what is traced is the file
 a user would print."""
@@ -16,14 +17,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.exporters import read_stl, stl_bytes
-from aperture_fab.fabricate import FabricationSettings, Part, make_part
-from aperture_fab.layout import HoleLayout
-from aperture_fab.mesh import PlateMesh, build_mesh, outline_points_mm
-from aperture_fab.mesh_holes import mesh_hole_loops
-from aperture_fab.model import Renderer
-from aperture_fab.process import PROCESSES, check_plate
-from aperture_fab.retrace import (
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, outline_points_mm
+from aperture_fab.fabrication.mesh_holes import mesh_hole_loops
+from aperture_fab.fabrication.part import FabricationSettings, Part, make_part
+from aperture_fab.fabrication.process import PROCESSES, check_plate
+from aperture_fab.io.formats import read_stl, stl_bytes
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.retrace import (
     DEFAULT_SAMPLES,
     MOST_SAMPLES,
     RAY_BUDGET,
@@ -38,8 +39,8 @@ from aperture_fab.retrace import (
     _strata,
     trace_mesh_view,
 )
-from aperture_fab.scene import Display, Eye, Plate, Scene, display_fov_deg
-from aperture_fab.validate import layout_fractions
+from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
+from aperture_fab.validation.validate import layout_fractions
 
 PROCESS = PROCESSES["photomask"]
 PITCH_MM = 0.3
@@ -132,7 +133,7 @@ def test_mesh_view_agrees_with_the_model(axis, sampling, samples, min_psnr_db):
 def near_eye_case(seed: int) -> tuple[Scene, Part, np.ndarray]:
     """The near-eye preset (80 x 80 chief-ray holes in 0.3 mm resin, 128 x 128 view): random
     open fractions in [0, 0.35] and a random display, pixel by pixel (the noisiest content)."""
-    from aperture_fab.config import resolve
+    from aperture_fab.config.config import resolve
 
     scene = resolve("near-eye").scene
     rng = np.random.default_rng(seed)
@@ -398,8 +399,8 @@ def test_samples_round_up_to_whole_replicates(sampling):
 
 
 def test_the_ray_budget_gives_dense_plates_fewer_rays_per_pair():
-    from aperture_fab.mesh_holes import mesh_hole_loops
-    from aperture_fab.retrace import _budget_samples
+    from aperture_fab.fabrication.mesh_holes import mesh_hole_loops
+    from aperture_fab.optics.retrace import _budget_samples
 
     scene, part, _, _ = random_case("straight")
     loops = mesh_hole_loops(written_mesh(part))

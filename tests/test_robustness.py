@@ -1,4 +1,4 @@
-"""Judging a plate over the eye distribution (aperture_fab.robustness)."""
+"""Judging a plate over the eye distribution (aperture_fab.validation.robustness)."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import pytest
 import torch
 from conftest import tiny_config
 
-from aperture_fab.baselines import elemental_display, regular_pinholes
-from aperture_fab.images import resample
-from aperture_fab.model import Renderer
-from aperture_fab.optimize import gain_mse, psnr_db
-from aperture_fab.robustness import PERCENTILES, Variant, judge_eyes
-from aperture_fab.scene import Eye, Scene
+from aperture_fab.io.images import resample
+from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.scene import Eye, Scene
+from aperture_fab.optimize.optimizer import gain_mse, psnr_db
 from aperture_fab.targets import asymmetric_marker
+from aperture_fab.validation.robustness import PERCENTILES, Variant, judge_eyes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

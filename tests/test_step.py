@@ -16,11 +16,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.layout import HoleLayout
-from aperture_fab.process import PROCESSES
-from aperture_fab.quantize import quantize
-from aperture_fab.scene import Plate
-from aperture_fab.step import (
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.fabrication.quantize import quantize
+from aperture_fab.fabrication.step import (
     HOLES_PER_TILE_SIDE,
     STRAIGHT_AXIS_LIMIT,
     StepSummary,
@@ -30,8 +29,9 @@ from aperture_fab.step import (
     step_bytes,
     tile_count,
 )
+from aperture_fab.optics.scene import Plate
 
-# aperture_fab.step imports OCP only inside its functions.
+# aperture_fab.fabrication.step imports OCP only inside its functions.
 pytest.importorskip("OCP", reason="STEP export needs cadquery-ocp (pip install cadquery-ocp)")
 
 THICKNESS_MM = 0.3
@@ -376,9 +376,9 @@ def test_cad_mount_frame_volume_and_placement(tmp_path: Path) -> None:
 
 def test_part_files_step_carries_the_parts_chamfer() -> None:
     # The STEP part must match the mesh (and DXF/SVG) outline: the same chamfer, same volume.
-    from aperture_fab.config import resolve
-    from aperture_fab.fabricate import fabrication_settings, make_part, part_files
-    from aperture_fab.mesh import mesh_volume_mm3
+    from aperture_fab.config.config import resolve
+    from aperture_fab.fabrication.mesh import mesh_volume_mm3
+    from aperture_fab.fabrication.part import fabrication_settings, make_part, part_files
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],

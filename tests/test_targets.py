@@ -12,7 +12,7 @@ import pytest
 from PIL import ImageFont
 
 from aperture_fab import targets
-from aperture_fab.images import decode_image, is_grey, linear_to_srgb
+from aperture_fab.io.images import decode_image, is_grey, linear_to_srgb
 from aperture_fab.targets import (
     EXAMPLES,
     asymmetric_marker,

@@ -1,4 +1,5 @@
-"""Tracked displays: `aperture_fab.tracking` (the display solved per eye state, the plate fixed)
+"""Tracked displays: `aperture_fab.optimize.tracking` (the display solved per eye state, the plate
+fixed)
 and the `aperture-fab display` command."""
 
 from __future__ import annotations
@@ -11,14 +12,14 @@ import pytest
 import torch
 from PIL import Image
 
-from aperture_fab.baselines import elemental_display, regular_pinholes
 from aperture_fab.cli import main
-from aperture_fab.eyes import EyeStates
-from aperture_fab.images import resample
-from aperture_fab.model import Renderer
-from aperture_fab.optimize import gain_mse_states, psnr_db
+from aperture_fab.io.images import resample
+from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.optimizer import gain_mse_states, psnr_db
+from aperture_fab.optimize.tracking import solve_display, tracked_views
 from aperture_fab.targets import natural
-from aperture_fab.tracking import solve_display, tracked_views
 from tests.conftest import tiny_config
 from tests.test_imports import CHILD, run_child
 

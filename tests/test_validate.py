@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from aperture_fab.cli import main
-from aperture_fab.images import encode_png
-from aperture_fab.layout import HoleLayout
-from aperture_fab.process import PROCESSES
-from aperture_fab.report import REPORT_VARIANTS, validate_report
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.io.images import encode_png
 from aperture_fab.targets import digit
-from aperture_fab.validate import (
+from aperture_fab.validation.report import REPORT_VARIANTS, validate_report
+from aperture_fab.validation.validate import (
     MAX_TILT_SIGMA_DEG,
     ValidationSettings,
     _tilt_offsets_mm,
@@ -117,10 +117,10 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
     """Re-fitting the display to the quantized plate lowers the loss from the design's content."""
     import torch
 
-    from aperture_fab.config import resolve
-    from aperture_fab.model import Renderer
-    from aperture_fab.optimize import fit_display, gain_mse
-    from aperture_fab.pipeline import _prepare
+    from aperture_fab.config.config import resolve
+    from aperture_fab.optics.model import Renderer
+    from aperture_fab.optimize.optimizer import fit_display, gain_mse
+    from aperture_fab.pipeline.design_job import _prepare
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
@@ -162,8 +162,8 @@ def fitted_part():
     import torch
     from conftest import tiny_config
 
-    from aperture_fab.optimize import fit_display
-    from aperture_fab.pipeline import _prepare
+    from aperture_fab.optimize.optimizer import fit_display
+    from aperture_fab.pipeline.design_job import _prepare
 
     config = tiny_config(**{"optimizer.precision": "float64"})
     scene = config.scene
@@ -203,8 +203,8 @@ def run_tolerance(fitted_part, position_sigma_mm=0.0, radius_bias_mm=0.0, **sett
 def nominal_psnr(fitted_part, radius_bias_mm=0.0):
     import torch
 
-    from aperture_fab.model import Renderer
-    from aperture_fab.optimize import gain_mse, psnr_db
+    from aperture_fab.optics.model import Renderer
+    from aperture_fab.optimize.optimizer import gain_mse, psnr_db
 
     config, targets, fitted, layout = fitted_part
     renderer = Renderer(config.scene, dtype=torch.float64)
@@ -263,7 +263,7 @@ def test_tilt_offsets_are_the_tilted_holes_seen_from_the_eye(tilt_deg, axis_deg,
     the lateral shift delta (p - c) / s_h along the chief ray."""
     from scipy.spatial.transform import Rotation
 
-    from aperture_fab.config import resolve
+    from aperture_fab.config.config import resolve
 
     scene = resolve("near-eye", overrides={"plate.cells": [80, 60]}).scene
     tilt, axis = math.radians(tilt_deg), math.radians(axis_deg)
@@ -289,7 +289,7 @@ def test_tilt_offsets_are_the_tilted_holes_seen_from_the_eye(tilt_deg, axis_deg,
 
 
 def test_a_tilt_into_the_eye_is_an_error():
-    from aperture_fab.config import resolve
+    from aperture_fab.config.config import resolve
 
     scene = resolve("near-eye", overrides={"eye.eye_relief_mm": 5.0}).scene
     with pytest.raises(ValueError, match="tilt_sigma_deg"):

@@ -1,0 +1,552 @@
+"""Configuration: a TOML document holding the scene and the optimizer settings, in layers.
+
+Precedence, lowest first: a preset (`aperture_fab.config.presets`), a user's TOML file, then
+overrides
+(dotted keys such as "plate.gap_mm", from command-line flags). Every section is optional in a
+file; what it leaves out comes from the preset.
+
+    preset = "near-eye"          # optional; the `preset` argument (CLI --preset) wins over it
+    [display]   width_mm, height_mm, pixels = [nx, ny]
+    [plate]     cells = [nx, ny], pitch_mm = [px, py] or one number, gap_mm, thickness_mm,
+                hole_axis
+    [eye]       pupil_mm, eye_relief_mm, focus_mm = "infinity" | number,
+                fov_deg = "display" | [x, y], view_pixels = [nx, ny],
+                positions_mm = [[x, y], ...], weights = [...],
+                eyebox_mm = [w, h] or one number, eyebox_shape = "ellipse" | "rect",
+                pupil_range_mm = "nominal" | [lo, hi],
+                focus_range_diopters = "nominal" | [lo, hi], gaze_deg, rotation_mm
+    [optimizer] method, learning_rate, momentum, iterations, schedule, init, display,
+                efficiency_weight, plateau_patience, plateau_tolerance, seed, precision,
+                device, checkpoint_every, quantize_share, eye_states, tail_share, tracking
+
+The eye distribution ([eye] eyebox_mm to rotation_mm, see aperture_fab.optics.eyes) spreads the eye
+around its nominal state (pupil_mm, focus_mm, the first position); "nominal" ranges are that
+state only. A nominal pupil_mm or focus_mm set in a higher layer than its range, and outside
+that range, pins it: the range becomes "nominal" (e.g. --pupil-mm 8 over the near-eye preset's
+3 to 6 mm designs for an 8 mm pupil; --focus-mm 500 for 500 mm). Set both to spread around it.
+
+Other top-level tables (e.g. [process], [validation]) belong to other stages: they are kept as
+they are in `Config.extra`. Unknown keys inside the four sections above are errors.
+
+This module reads and writes text only; the CLI reads and writes the files.
+"""
+
+from __future__ import annotations
+
+import datetime
+import difflib
+import math
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from aperture_fab.config.presets import DEFAULT_PRESET, PRESETS
+from aperture_fab.config.settings import (
+    DISPLAY_MODES,
+    INITS,
+    METHODS,
+    PRECISIONS,
+    SCHEDULES,
+    TRACKINGS,
+    OptimizerSettings,
+)
+from aperture_fab.optics.eyes import EYEBOX_SHAPES
+from aperture_fab.optics.scene import HOLE_AXES, Display, Eye, Plate, Scene, display_fov_deg
+
+__all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]
+
+#: The keys each known section allows, in the order `to_toml` writes them.
+SECTION_KEYS: dict[str, tuple[str, ...]] = {
+    "display": ("width_mm", "height_mm", "pixels"),
+    "plate": ("cells", "pitch_mm", "gap_mm", "thickness_mm", "hole_axis"),
+    "eye": ("pupil_mm", "eye_relief_mm", "focus_mm", "fov_deg", "view_pixels", "positions_mm",
+            "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
+            "gaze_deg", "rotation_mm"),
+    "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
+                  "display", "efficiency_weight", "plateau_patience", "plateau_tolerance", "seed",
+                  "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
+                  "tail_share", "tracking"),
+}
+
+INFINITY = "infinity"
+DISPLAY_FOV = "display"
+NOMINAL = "nominal"
+#: Each eye range and the nominal value that pins it when set in a higher layer.
+_RANGE_NOMINALS = {"eye.pupil_range_mm": "eye.pupil_mm",
+                   "eye.focus_range_diopters": "eye.focus_mm"}
+
+_FLOATS = {
+    "display.width_mm", "display.height_mm", "plate.gap_mm", "plate.thickness_mm",
+    "eye.pupil_mm", "eye.eye_relief_mm", "optimizer.learning_rate", "optimizer.momentum",
+    "optimizer.efficiency_weight", "optimizer.plateau_tolerance", "optimizer.quantize_share",
+    "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
+}
+_WHOLES = {
+    "optimizer.iterations", "optimizer.plateau_patience", "optimizer.seed",
+    "optimizer.checkpoint_every", "optimizer.eye_states",
+}
+_WHOLE_PAIRS = {"display.pixels", "plate.cells", "eye.view_pixels"}
+#: Text keys and their choices (None: free text, checked by the dataclass).
+_TEXTS: dict[str, tuple[str, ...] | None] = {
+    "plate.hole_axis": HOLE_AXES,
+    "eye.eyebox_shape": EYEBOX_SHAPES,
+    "optimizer.tracking": TRACKINGS,
+    "optimizer.method": METHODS,
+    "optimizer.schedule": SCHEDULES,
+    "optimizer.init": INITS,
+    "optimizer.display": DISPLAY_MODES,
+    "optimizer.precision": PRECISIONS,
+    "optimizer.device": None,
+}
+
+#: Layer ranks: a higher rank overrides a lower one.
+_PRESET, _FILE, _FLAG = 0, 1, 2
+#: difflib similarity above which an unknown table name is taken for a typo of a known section.
+_SECTION_TYPO_CUTOFF = 0.8
+_KEY_TYPO_CUTOFF = 0.6
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+_TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A fully resolved configuration.
+
+    preset: name of the preset the values started from.
+    scene: display, plate and eye (field of view in explicit degrees).
+    optimizer: optimizer settings.
+    extra: other top-level tables (e.g. "process", "validation"), read-only, kept for the
+        stages that own them; nested tables are read-only mappings and arrays are tuples.
+    """
+
+    preset: str
+    scene: Scene
+    optimizer: OptimizerSettings
+    extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def parse_toml(text: str, source: str) -> dict[str, Any]:
+    """Parse TOML text; a syntax error becomes a ValueError naming `source` and the line."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        message = str(err)
+        match = _TOML_POSITION.search(message)
+        where = f"line {match[1]}, column {match[2]}" if match else "somewhere"
+        what = _TOML_POSITION.sub("", message).strip()
+        raise ValueError(
+            f"{source}: TOML syntax error at {where}: {what}. Fix that line: text values need "
+            'quotes (hole_axis = "straight"), lists use brackets (pixels = [400, 400]), each '
+            "key = value on its own line, each [section] at most once."
+        ) from err
+
+
+class _Layers:
+    """Values of the four known sections by dotted key, with the layer each came from."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, Any] = {}
+        self.sources: dict[str, tuple[int, str]] = {}
+        self.extra: dict[str, Any] = {}
+
+    def set(self, key: str, value: Any, rank: int, label: str) -> None:
+        self.values[key] = value
+        self.sources[key] = (rank, label)
+
+    def where(self, key: str) -> str:
+        return f"from {self.sources[key][1]}"
+
+
+def _suggest(word: str, choices: tuple[str, ...] | list[str]) -> str:
+    close = difflib.get_close_matches(word, choices, n=1, cutoff=_KEY_TYPO_CUTOFF)
+    return f" Did you mean {close[0]!r}?" if close else ""
+
+
+def _other_section(key: str) -> str:
+    """" 'pupil_mm' belongs in [eye]." when `key` is a key of some section, else ""."""
+    homes = [s for s, keys in SECTION_KEYS.items() if key in keys]
+    return f" {key!r} belongs in [{homes[0]}]." if homes else ""
+
+
+def _check_key(section: str, key: str, label: str) -> None:
+    allowed = SECTION_KEYS[section]
+    if key not in allowed:
+        hint = _other_section(key) or _suggest(key, list(allowed))
+        raise ValueError(
+            f"Unknown key {key!r} in section [{section}] ({label}); allowed keys: "
+            f"{', '.join(allowed)}.{hint}"
+        )
+
+
+def _check_section_name(name: str, label: str) -> None:
+    """Reject a table whose name looks like a misspelt known section (it would be ignored)."""
+    close = difflib.get_close_matches(name, list(SECTION_KEYS), n=1, cutoff=_SECTION_TYPO_CUTOFF)
+    if close:
+        raise ValueError(
+            f"Unknown section [{name}] ({label}); did you mean [{close[0]}]? Known sections: "
+            f"{', '.join(SECTION_KEYS)}; other tables are kept for other stages."
+        )
+
+
+def _merge(into: dict[str, Any], new: Mapping[str, Any]) -> None:
+    """Deep-merge `new` into `into`: tables merge key by key, other values replace."""
+    for key, value in new.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = _thaw(value)  # a deep copy, so later merges never touch the source
+
+
+def _add_document(layers: _Layers, doc: Mapping[str, Any], rank: int, label: str) -> None:
+    """Add a preset or file document (TOML shape) to the layers."""
+    for name, table in doc.items():
+        if name == "preset":
+            continue
+        if not isinstance(table, Mapping):
+            raise TypeError(
+                f"Top-level key {name!r} = {table!r} ({label}) is not allowed: only "
+                f'preset = "name" and [sections] go at the top.{_other_section(name)}'
+            )
+        if name in SECTION_KEYS:
+            for key, value in table.items():
+                _check_key(name, key, label)
+                layers.set(f"{name}.{key}", value, rank, label)
+        else:
+            _check_section_name(name, label)
+            _merge(layers.extra, {name: table})
+
+
+def _add_overrides(layers: _Layers, overrides: Mapping[str, Any]) -> None:
+    """Add dotted-key overrides; None means "not given" (an unset CLI flag)."""
+    all_keys = [f"{s}.{k}" for s, keys in SECTION_KEYS.items() for k in keys]
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        section, _, key = dotted.partition(".")
+        if not key:
+            bare = [k for k in all_keys if k.endswith(f".{dotted}")]
+            hint = f" Did you mean {bare[0]!r}?" if bare else _suggest(dotted, all_keys)
+            raise ValueError(
+                f"Override {dotted!r} must be a dotted key such as 'plate.gap_mm' (the preset "
+                f"is chosen with the preset argument).{hint}"
+            )
+        if section in SECTION_KEYS:
+            _check_key(section, key, f"override {dotted!r}")
+            layers.set(dotted, value, _FLAG, "the overrides (flags)")
+        else:
+            _check_section_name(section, f"override {dotted!r}")
+            nested: Any = value
+            for part in reversed(dotted.split(".")[1:]):
+                nested = {part: nested}
+            _merge(layers.extra, {section: nested})
+
+
+# ---------------------------------------------------------------------------------------------
+# Converting values, with errors that name the key, the value, where it came from and the fix
+
+
+def _example(key: str) -> str:
+    section, _, name = key.partition(".")
+    return f"{name} = {_toml_value(PRESETS[DEFAULT_PRESET][section][name])}"
+
+
+def _wrong(key: str, value: Any, where: str, expected: str) -> TypeError:
+    return TypeError(
+        f"{key} = {value!r} ({where}) has the wrong type: expected {expected}, "
+        f"e.g. {_example(key)}."
+    )
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _float_pair(key: str, value: Any, where: str) -> tuple[float, float]:
+    if not (isinstance(value, (list, tuple)) and len(value) == 2 and all(map(_is_number, value))):
+        raise _wrong(key, value, where, "a pair of numbers [x, y]")
+    return (float(value[0]), float(value[1]))
+
+
+def _convert(layers: _Layers, key: str) -> Any:
+    """The value of `key`, checked for type and converted to what the dataclass holds."""
+    value, where = layers.values[key], layers.where(key)
+    if key in _FLOATS:
+        if not _is_number(value):
+            raise _wrong(key, value, where, "a number")
+        return float(value)
+    if key in _WHOLES:
+        if not _is_whole(value):
+            raise _wrong(key, value, where, "a whole number")
+        return value
+    if key in _WHOLE_PAIRS:
+        if not (isinstance(value, (list, tuple)) and len(value) == 2
+                and all(map(_is_whole, value))):
+            raise _wrong(key, value, where, "a pair of whole numbers [nx, ny]")
+        return (value[0], value[1])
+    if key in _TEXTS:
+        if not isinstance(value, str):
+            choices = _TEXTS[key]
+            expected = f"one of {', '.join(choices)}" if choices else "text in quotes"
+            raise _wrong(key, value, where, expected)
+        return value
+    if key in ("plate.pitch_mm", "eye.eyebox_mm"):
+        if _is_number(value):
+            return (float(value), float(value))
+        return _float_pair(key, value, where)
+    if key in _RANGE_NOMINALS:
+        if value == NOMINAL:
+            return None
+        if _is_number(value) or isinstance(value, str):
+            raise _wrong(key, value, where, f'"{NOMINAL}" or a pair [lo, hi]')
+        return _float_pair(key, value, where)
+    if key == "eye.focus_mm":
+        if value == INFINITY:
+            return None
+        if not _is_number(value):
+            raise _wrong(key, value, where, f'"{INFINITY}" or a distance in mm')
+        return float(value)
+    if key == "eye.fov_deg":
+        if value == DISPLAY_FOV:
+            return DISPLAY_FOV
+        if _is_number(value) or isinstance(value, str):
+            raise _wrong(key, value, where, f'"{DISPLAY_FOV}" or a pair of angles [x, y]')
+        return _float_pair(key, value, where)
+    if key == "eye.positions_mm":
+        if not isinstance(value, (list, tuple)):
+            raise _wrong(key, value, where, "a list of [x, y] pairs")
+        return tuple(_float_pair(key, pos, where) for pos in value)
+    if key == "eye.weights":
+        if not (isinstance(value, (list, tuple)) and all(map(_is_number, value))):
+            raise _wrong(key, value, where, "a list of numbers, one per position")
+        return tuple(float(w) for w in value)
+    raise AssertionError(f"no converter for {key}")  # SECTION_KEYS and the sets above disagree
+
+
+def eyebox_margin_mm(eyebox_mm: tuple[float, float], gaze_deg: float, rotation_mm: float
+                     ) -> tuple[float, float]:
+    """How far (x, y) mm the pupil centre moves off its nominal position: half the eyebox plus
+    the largest gaze shift."""
+    shift = rotation_mm * math.sin(math.radians(gaze_deg))
+    return (eyebox_mm[0] / 2 + shift, eyebox_mm[1] / 2 + shift)
+
+
+def _build(cls: Any, kwargs: dict[str, Any], layers: _Layers) -> Any:
+    """cls(**kwargs), with any error it raises extended by where the keys it names came from."""
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        named = [k for k in layers.sources if re.search(rf"(?<![\w.]){re.escape(k)}\b", str(err))]
+        if not named:
+            raise
+        origins = "; ".join(f"{k} came {layers.where(k)}" for k in named)
+        if "eye.fov_deg" in named and layers.values["eye.fov_deg"] == DISPLAY_FOV:
+            origins += ' as "display", the field the display subtends from the pupil'
+        raise type(err)(f"{err} ({origins})") from err
+
+
+def _section(layers: _Layers, section: str) -> dict[str, Any]:
+    return {key: _convert(layers, f"{section}.{key}") for key in SECTION_KEYS[section]}
+
+
+def _freeze(value: Any) -> Any:
+    """Read-only copy: tables become mappingproxies, arrays tuples."""
+    if isinstance(value, Mapping):
+        return MappingProxyType({k: _freeze(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)):
+        return tuple(_freeze(v) for v in value)
+    return value
+
+
+def _thaw(value: Any) -> Any:
+    """Plain dicts and lists from a frozen value."""
+    if isinstance(value, Mapping):
+        return {k: _thaw(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_thaw(v) for v in value]
+    return value
+
+
+def _pin_ranges(eye_args: dict[str, Any], layers: _Layers) -> None:
+    """A nominal set in a higher layer than its range, outside it, makes the range nominal."""
+    nominals = {"eye.pupil_mm": eye_args["pupil_mm"],
+                "eye.focus_mm": 0.0 if eye_args["focus_mm"] is None
+                else 1000.0 / eye_args["focus_mm"]}
+    for range_key, nominal_key in _RANGE_NOMINALS.items():
+        name = range_key.partition(".")[2]
+        bounds, value = eye_args[name], nominals[nominal_key]
+        if (bounds is not None and layers.sources[nominal_key][0] > layers.sources[range_key][0]
+                and not bounds[0] <= value <= bounds[1]):
+            eye_args[name] = None
+
+
+def resolve(
+    preset: str | None = None,
+    file_dict: Mapping[str, Any] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    file_source: str | None = None,
+) -> Config:
+    """Resolve preset < file < overrides into a checked Config.
+
+    preset: preset name; None takes the file's `preset` key, else the default ("near-eye").
+    file_dict: a parsed TOML document (see `parse_toml`); any section may be left out.
+    overrides: dotted keys ("plate.gap_mm") to values, e.g. from flags; None values are skipped.
+    file_source: how errors name the file (its path); None says "the config file".
+    """
+    file_label = "the config file" if file_source is None else f"file {file_source!r}"
+    file_dict = {} if file_dict is None else file_dict
+    if not isinstance(file_dict, Mapping):
+        raise TypeError(f"{file_label} must hold a TOML table, got {type(file_dict).__name__}")
+    if preset is None:
+        preset = file_dict.get("preset", DEFAULT_PRESET)
+        if not isinstance(preset, str):
+            raise TypeError(
+                f'preset = {preset!r} (from {file_label}) must be text, e.g. preset = "near-eye"'
+            )
+    if preset not in PRESETS:
+        raise ValueError(
+            f"preset = {preset!r} is not a known preset; choose one of {', '.join(PRESETS)}."
+        )
+
+    layers = _Layers()
+    _add_document(layers, PRESETS[preset], _PRESET, f"preset {preset!r}")
+    _add_document(layers, file_dict, _FILE, file_label)
+    _add_overrides(layers, overrides or {})
+    missing = [f"{s}.{k}" for s, keys in SECTION_KEYS.items() for k in keys
+               if f"{s}.{k}" not in layers.values]
+    if missing:  # a preset must give every key
+        raise AssertionError(f"preset {preset!r} lacks {', '.join(missing)}")
+
+    display = _build(Display, _section(layers, "display"), layers)
+    plate = _build(Plate, _section(layers, "plate"), layers)
+    eye_args = _section(layers, "eye")
+    # Positions set in a higher layer than the weights get equal weights (the preset's single
+    # weight cannot fit a new eyebox).
+    n_positions = len(eye_args["positions_mm"])
+    if (len(eye_args["weights"]) != n_positions
+            and layers.sources["eye.weights"][0] < layers.sources["eye.positions_mm"][0]):
+        eye_args["weights"] = (1.0,) * n_positions
+    _pin_ranges(eye_args, layers)
+    if eye_args["fov_deg"] == DISPLAY_FOV:
+        distance_mm = eye_args["eye_relief_mm"] + plate.thickness_mm + plate.gap_mm
+        # Check the eye's own values first (their messages are the clearer ones), then take
+        # the field the display covers from every pupil position of the eyebox.
+        _build(Eye, {**eye_args, "fov_deg": display_fov_deg(display, distance_mm)}, layers)
+        margin = eyebox_margin_mm(eye_args["eyebox_mm"], eye_args["gaze_deg"],
+                                  eye_args["rotation_mm"])
+        try:
+            eye_args["fov_deg"] = display_fov_deg(display, distance_mm, margin)
+        except ValueError as err:
+            raise ValueError(
+                f"eye.eyebox_mm = {list(eye_args['eyebox_mm'])} and eye.gaze_deg = "
+                f"{eye_args['gaze_deg']:g} ({layers.where('eye.eyebox_mm')}) with "
+                f'eye.fov_deg = "display": {err}') from err
+    eye = _build(Eye, eye_args, layers)
+    scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
+    optimizer = _build(OptimizerSettings, _section(layers, "optimizer"), layers)
+    return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra))
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+
+def _range_value(bounds: tuple[float, float] | None) -> Any:
+    return NOMINAL if bounds is None else list(bounds)
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    """The fully resolved config as plain dicts and lists, in the TOML file's shape."""
+    display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
+    opt = config.optimizer
+    sections: dict[str, dict[str, Any]] = {
+        "display": {"width_mm": display.width_mm, "height_mm": display.height_mm,
+                    "pixels": list(display.pixels)},
+        "plate": {"cells": list(plate.cells), "pitch_mm": list(plate.pitch_mm),
+                  "gap_mm": plate.gap_mm, "thickness_mm": plate.thickness_mm,
+                  "hole_axis": plate.hole_axis},
+        "eye": {"pupil_mm": eye.pupil_mm, "eye_relief_mm": eye.eye_relief_mm,
+                "focus_mm": INFINITY if eye.focus_mm is None else eye.focus_mm,
+                "fov_deg": list(eye.fov_deg), "view_pixels": list(eye.view_pixels),
+                "positions_mm": [list(p) for p in eye.positions_mm],
+                "weights": list(eye.weights), "eyebox_mm": list(eye.eyebox_mm),
+                "eyebox_shape": eye.eyebox_shape,
+                "pupil_range_mm": _range_value(eye.pupil_range_mm),
+                "focus_range_diopters": _range_value(eye.focus_range_diopters),
+                "gaze_deg": eye.gaze_deg, "rotation_mm": eye.rotation_mm},
+        "optimizer": {key: getattr(opt, key) for key in SECTION_KEYS["optimizer"]},
+    }
+    return {"preset": config.preset, **sections, **_thaw(config.extra)}
+
+
+_STRING_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n",
+                   "\f": "\\f", "\r": "\\r"}
+_DEL = 0x7F
+_FIRST_PRINTABLE = 0x20
+
+
+def _toml_string(text: str) -> str:
+    out = []
+    for ch in text:
+        if ch in _STRING_ESCAPES:
+            out.append(_STRING_ESCAPES[ch])
+        elif ord(ch) < _FIRST_PRINTABLE or ord(ch) == _DEL:  # TOML forbids raw control chars
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _toml_key(key: str) -> str:
+    return key if _BARE_KEY.fullmatch(key) else _toml_string(key)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)  # shortest text that reads back to the same float
+    if isinstance(value, str):
+        return _toml_string(value)
+    if isinstance(value, (datetime.date, datetime.time)):  # datetime is a date
+        return value.isoformat()
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        items = ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items())
+        return "{ " + items + " }" if items else "{}"
+    raise TypeError(f"cannot write {value!r} ({type(value).__name__}) to TOML")
+
+
+def _toml_table(lines: list[str], path: list[str], table: Mapping[str, Any]) -> None:
+    for key, value in table.items():
+        if not isinstance(value, Mapping):
+            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
+    for key, value in table.items():
+        if isinstance(value, Mapping):
+            lines.append("")
+            lines.append("[" + ".".join(_toml_key(p) for p in [*path, key]) + "]")
+            _toml_table(lines, [*path, key], value)
+
+
+def to_toml(config: Config) -> str:
+    """The fully resolved config as TOML text; resolving the parsed text gives `config` back."""
+    lines = [
+        "# aperture-fab configuration, fully resolved: every value explicit (fov_deg in degrees).",
+    ]
+    _toml_table(lines, [], to_dict(config))
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,191 @@
+"""From an optimized plate to a part: makeable holes (quantize), the solid (build), its files.
+
+Values in, values out; the pipeline writes the files.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import MeshReport, PlateMesh, build_mesh, check_mesh
+from aperture_fab.fabrication.process import Process, open_fraction_bounds, resolve_process
+from aperture_fab.fabrication.quantize import UnmakeableError, made_sizes, quantize
+from aperture_fab.io.formats import dxf_bytes, holes_csv, stl_bytes, svg_text, threemf_bytes
+from aperture_fab.optics.scene import Plate, Scene
+
+__all__ = [
+    "PART_FORMATS",
+    "PartFormat",
+    "Part",
+    "FabricationSettings",
+    "fabrication_settings",
+    "build_part",
+    "design_bounds",
+    "drawn_fractions",
+    "eye_distance_mm",
+    "make_part",
+    "part_files",
+]
+
+PartFormat = Literal["stl", "3mf", "csv", "dxf", "svg", "step"]
+PART_FORMATS: tuple[PartFormat, ...] = ("stl", "3mf", "csv", "dxf", "svg", "step")
+FILE_NAMES: dict[PartFormat, str] = {
+    "stl": "plate.stl", "3mf": "plate.3mf", "csv": "holes.csv", "dxf": "plate.dxf",
+    "svg": "plate.svg", "step": "plate.step",
+}
+#: Chord error of hole polygons as a share of the process's radius sigma: well inside tolerance.
+CHORD_SHARE_OF_SIGMA = 0.25
+MIN_CHORD_MM = 2e-4
+MAX_CHORD_MM = 5e-3
+#: Legs of the alignment chamfer on the outline's top-left corner, as a share of the margin.
+CORNER_CUT_SHARE = 0.6
+
+
+@dataclass(frozen=True)
+class FabricationSettings:
+    """How the part is made.
+
+    process: the fabrication process (rules and tolerances).
+    force: write parts the process cannot make, with the violations recorded.
+    step: also write a STEP B-rep.
+    alignment_cut: chamfer the outline's top-left corner so the plate goes one way round.
+    svg_polarity: "holes_black" (holes drawn black on white) or "holes_white".
+    """
+
+    process: Process
+    force: bool = False
+    step: bool = False
+    alignment_cut: bool = True
+    svg_polarity: Literal["holes_black", "holes_white"] = "holes_black"
+
+
+def fabrication_settings(extra: Mapping[str, Any], overrides: Mapping[str, Any] | None = None
+                         ) -> FabricationSettings:
+    """Settings from a config's [process] and [fabrication] tables plus flag overrides
+    (keys "process", "force", "step")."""
+    section = dict(extra.get("process", {}))
+    fab = dict(extra.get("fabrication", {}))
+    fab.update({k: v for k, v in (overrides or {}).items() if k != "process" and v is not None})
+    name = (overrides or {}).get("process") or section.pop("name", "resin")
+    section.pop("name", None)
+    process = resolve_process(str(name), section)
+    allowed = {"force", "step", "alignment_cut", "svg_polarity"}
+    unknown = set(fab) - allowed
+    if unknown:
+        raise ValueError(f"[fabrication] has unknown keys {sorted(unknown)}; allowed: "
+                         f"{sorted(allowed)}.")
+    polarity = fab.get("svg_polarity", "holes_black")
+    if polarity not in ("holes_black", "holes_white"):
+        raise ValueError(f"fabrication.svg_polarity = {polarity!r}; use holes_black or "
+                         "holes_white.")
+    return FabricationSettings(process, bool(fab.get("force", False)), bool(fab.get("step", False)),
+                               bool(fab.get("alignment_cut", True)), polarity)
+
+
+def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:
+    """Open-area fractions the optimizer may use: up to the largest hole the process makes in a
+    cell (as made); below the smallest makeable hole quantization diffuses the area, so the low
+    end is 0."""
+    _, a_max = open_fraction_bounds(process, scene.plate)
+    if a_max <= 0:
+        return (0.0, scene.plate.max_open_fraction)  # unmakeable: make_part says why
+    try:
+        made = made_sizes(scene.plate, process, eye_distance_mm(scene)).hi
+    except UnmakeableError:  # forced past the process's rules: make_part records them
+        made = a_max
+    return (0.0, min(made, scene.plate.max_open_fraction))
+
+
+@dataclass(frozen=True)
+class Part:
+    """A part ready to write.
+
+    layout: the holes as made.
+    mesh: the plate solid (mm, watertight), in part coordinates (bottom face at z = 0).
+    report: the mesh's own checks.
+    corner_cut_mm: the alignment chamfer's legs (0 for none).
+    """
+
+    layout: HoleLayout
+    mesh: PlateMesh
+    report: MeshReport
+    corner_cut_mm: float
+
+
+def drawn_fractions(open_fraction: np.ndarray, plate: Plate, process: Process) -> np.ndarray:
+    """The open fractions to draw so that the process makes `open_fraction` (rows, cols): each
+    open cell's radius less the process's radius bias (made = drawn + bias)."""
+    a = np.asarray(open_fraction, dtype=np.float64)
+    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
+    made_r = np.sqrt(np.clip(a, 0, None) * cell / math.pi)
+    # No wider than the cell: what the bias cannot add there, quantization records.
+    drawn_r = np.where(a > 0, np.clip(made_r - process.radius_bias_mm, 0, min(plate.pitch_mm) / 2),
+                       0.0)
+    return math.pi * drawn_r**2 / cell
+
+
+def eye_distance_mm(scene: Scene) -> float:
+    """Plate mid-thickness to the pupil: where chief-ray holes converge."""
+    return scene.eye.eye_relief_mm + scene.plate.thickness_mm / 2
+
+
+def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSettings) -> Part:
+    """Quantize to makeable holes and build the checked solid.
+
+    open_fraction: (rows, cols) the open fractions wanted as made; the holes are drawn larger
+    or smaller by the process's radius bias so that they come out at that size.
+    """
+    plate, eye = scene.plate, scene.eye
+    process = settings.process
+    layout = quantize(drawn_fractions(open_fraction, plate, process), plate, process,
+                      tilt_target_mm=eye.positions_mm[0], eye_distance_mm=eye_distance_mm(scene),
+                      force=settings.force)
+    web = 0.0 if settings.force else process.min_web_for(plate.thickness_mm)
+    part = build_part(layout, settings, web)
+    report = part.report
+    if not (report.watertight and report.consistently_oriented and report.bodies == 1
+            and report.genus == layout.count):
+        raise RuntimeError(f"the built plate failed its own checks ({report}); this is a bug, "
+                           "please report it with the design.")
+    return part
+
+
+def build_part(layout: HoleLayout, settings: FabricationSettings, min_web_mm: float) -> Part:
+    """The solid for a layout as it is (checked, not judged): polygons fine enough for the
+    process's radius tolerance, the alignment chamfer, webs of at least min_web_mm."""
+    margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
+    cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0
+    sigma = settings.process.radius_sigma_mm
+    chord = min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * sigma))
+    mesh = build_mesh(layout, chord, min_web_mm=min_web_mm, corner_cut_mm=cut)
+    return Part(layout, mesh, check_mesh(mesh), cut)
+
+
+def part_files(part: Part, formats: tuple[PartFormat, ...], settings: FabricationSettings,
+               progress: Callable[[int], None] | None = None) -> dict[str, bytes]:
+    """File name -> content for the requested formats."""
+    files: dict[str, bytes] = {}
+    for fmt in formats:
+        name = FILE_NAMES[fmt]
+        if fmt == "stl":
+            files[name] = stl_bytes(part.mesh)
+        elif fmt == "3mf":
+            files[name] = threemf_bytes(part.mesh)
+        elif fmt == "csv":
+            files[name] = holes_csv(part.layout).encode()
+        elif fmt == "dxf":
+            files[name] = dxf_bytes(part.layout, corner_cut_mm=part.corner_cut_mm)
+        elif fmt == "svg":
+            files[name] = svg_text(part.layout, settings.svg_polarity,
+                                   corner_cut_mm=part.corner_cut_mm).encode()
+        elif fmt == "step":
+            from aperture_fab.fabrication.step import step_bytes
+
+            files[name] = step_bytes(part.layout, progress, corner_cut_mm=part.corner_cut_mm)
+    return files

@@ -1,0 +1,558 @@
+"""The eye as a distribution: where the pupil is, how wide, how focused, which way it looks.
+
+A worn device is seen by many eye states (DESIGN.md section 3, "The eye moves"): the pupil centre
+sits anywhere in an eyebox of a few millimetres, moves with gaze as the eye rotates, changes
+diameter with the light level and accommodates. `EyeDistribution` describes that spread,
+`EyeStates` is a batch of S concrete states with quadrature weights, and the methods of
+`EyeDistribution` draw batches: random ones for the optimizer (`sample`, one fresh batch per
+iteration via `iteration_seed`), a fixed low-discrepancy set for judging a part
+(`evaluation_states`, then `percentiles`), and regular grids and sweeps for maps and plots.
+
+Numpy only: the renderer turns a batch into tensors itself.
+
+Conventions (DESIGN.md section 2): millimetres; x to the right, y up, for the eye looking toward
+-z; offsets are absolute pupil-centre positions in the scene frame, like `Eye.positions_mm`.
+Focus is in diopters, 1000 / focus distance in mm, 0 = infinity (relaxed).
+
+The gaze model. The eye rotates about a centre `rotation_mm` behind the pupil (the pupil is
+between the centre and the plate). Looking by angles (ax, ay) toward +x / +y (the view's right /
+top) moves the pupil centre by (rotation_mm sin ax, rotation_mm sin ay), each axis on its own.
+Neglected: the pupil's axial shift toward the centre, rotation_mm (1 - cos angle) (0.17 mm at
+10 deg); the pupil's tilt and foreshortening (an ellipse of minor axis cos(angle) times the
+diameter, 1.5 % at 10 deg); the coupling of the two axes (a diagonal gaze of polar angle t moves
+the pupil by rotation_mm sin t along its azimuth, which the per-axis form matches to second
+order); Listing's-law torsion. The view itself stays in world directions: the image the plate
+forms is fixed to the device, so a rotated eye sees the same view grid through a moved pupil,
+only centred on the fovea elsewhere (the model's retina is uniform, it has no fovea).
+
+Centre of rotation: about 13.5 mm behind the corneal apex (Gullstrand's value, the one used in
+spectacle-lens design, e.g. M. Jalie, "The role of the eye's centre of rotation in lens
+design", Points de Vue 69, 2013), and the entrance pupil about 3 mm behind the apex (3.04 mm in
+Le Grand's theoretical eye): about 10.5 mm between them; measured eyes spread over about 10 to
+13 mm (G. A. Fry and W. W. Hill, "The center of rotation of the eye", Am. J. Optom. 39, 581,
+1962). Default 11 mm.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from aperture_fab.optics.scene import Eye
+
+__all__ = [
+    "EyeboxShape",
+    "EyeStates",
+    "EyeDistribution",
+    "distribution_of",
+    "iteration_seed",
+    "percentiles",
+]
+
+EyeboxShape = Literal["ellipse", "rect"]
+EYEBOX_SHAPES: tuple[EyeboxShape, ...] = ("ellipse", "rect")
+
+#: Distance from the pupil to the eye's centre of rotation, mm (see the module docstring).
+ROTATION_MM = 11.0
+MAX_EYEBOX_MM = 50.0
+MAX_PUPIL_MM = 20.0
+#: A human eye accommodates by at most about 10 D (less with age); a fixed focus may be nearer.
+MAX_ACCOMMODATION_DIOPTERS = 10.0
+MAX_GAZE_DEG = 45.0
+MAX_ROTATION_MM = 30.0
+#: Relative slack in "the nominal lies inside its range" (1000 / mm round trips).
+_RANGE_SLACK = 1e-9
+#: How far weights may sum from 1 before it is an error rather than rounding.
+_WEIGHT_SUM_SLACK = 1e-6
+#: Unit-cube coordinates of a state: eyebox (2), gaze (2), pupil, focus.
+_DIMS = 6
+_PRIMES = (2, 3, 5, 7, 11, 13)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks shared with scene.Eye
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool)
+
+
+def _check_number(name: str, value: object, low: float, high: float, fix: str,
+                  *, positive: bool = False) -> None:
+    """low <= value <= high (low < value when positive), finite, else an error naming `name`."""
+    if not _is_number(value):
+        raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
+    number = float(value)  # type: ignore[arg-type]
+    if not (math.isfinite(number) and (low < number if positive else low <= number)
+            and number <= high):
+        allowed = (f"{low:g} < {name.rsplit('.', 1)[-1]} <= {high:g}" if positive
+                   else f"{low:g} to {high:g}")
+        raise ValueError(f"{name} = {value!r} is out of range; allowed: {allowed}. {fix}")
+
+
+def _check_pair(name: str, value: object) -> tuple[float, float]:
+    if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(map(_is_number, value))):
+        raise TypeError(f"{name} must be a pair of numbers, got {value!r}")
+    return (float(value[0]), float(value[1]))
+
+
+def _check_range(name: str, value: object, low: float, high: float, fix: str,
+                 *, positive: bool = False) -> tuple[float, float]:
+    lo, hi = _check_pair(name, value)
+    bad_low = lo <= low if positive else lo < low
+    if not (math.isfinite(lo) and math.isfinite(hi)) or bad_low or hi > high or lo > hi:
+        first = f"0 < lo <= hi <= {high:g}" if positive else f"{low:g} <= lo <= hi <= {high:g}"
+        raise ValueError(f"{name} = {value!r} is out of range; allowed: [lo, hi] with {first}. "
+                         f"{fix}")
+    return lo, hi
+
+
+def _inside(value: float, lo: float, hi: float) -> bool:
+    slack = _RANGE_SLACK * max(1.0, abs(lo), abs(hi))
+    return lo - slack <= value <= hi + slack
+
+
+def check_fields(
+    names: Mapping[str, str],
+    *,
+    eyebox_mm: object,
+    eyebox_shape: object,
+    pupil_range_mm: object | None,
+    nominal_pupil_mm: float,
+    focus_range_diopters: object | None,
+    nominal_focus_diopters: float,
+    gaze_deg: object,
+    rotation_mm: object,
+) -> None:
+    """Raise ValueError / TypeError naming the field unless the distribution fields are valid.
+
+    names: how messages name each field ("eyebox_mm", ..., "pupil", "focus" for the nominals),
+        e.g. "eye.eyebox_mm" for the config's [eye] section. A None range is the nominal point.
+    """
+    w, h = _check_pair(names["eyebox_mm"], eyebox_mm)
+    for size in (w, h):
+        if not (math.isfinite(size) and 0 <= size <= MAX_EYEBOX_MM):
+            raise ValueError(
+                f"{names['eyebox_mm']} = {eyebox_mm!r} is out of range; allowed: 0 to "
+                f"{MAX_EYEBOX_MM:g} mm per axis. Give the full width and height of the region "
+                "the pupil centre can take, e.g. [4, 4]; [0, 0] fixes it at the nominal position."
+            )
+    if eyebox_shape not in EYEBOX_SHAPES:
+        raise ValueError(f"{names['eyebox_shape']} = {eyebox_shape!r} is not allowed; choose one "
+                         f"of {', '.join(EYEBOX_SHAPES)}.")
+    if pupil_range_mm is not None:
+        lo, hi = _check_range(names["pupil_range_mm"], pupil_range_mm, 0.0, MAX_PUPIL_MM,
+                              "Pupil diameters in mm; a human pupil is about 2 to 8 mm across.",
+                              positive=True)
+        if not _inside(nominal_pupil_mm, lo, hi):
+            raise ValueError(
+                f"{names['pupil']} = {nominal_pupil_mm!r} is outside {names['pupil_range_mm']} "
+                f"= {pupil_range_mm!r}; allowed: lo <= nominal <= hi. Widen the range or move "
+                "the nominal pupil into it."
+            )
+    if focus_range_diopters is not None:
+        lo, hi = _check_range(names["focus_range_diopters"], focus_range_diopters, 0.0, math.inf,
+                              "")
+        fixed = lo == hi and _inside(nominal_focus_diopters, lo, hi)
+        if hi > MAX_ACCOMMODATION_DIOPTERS and not fixed:
+            raise ValueError(
+                f"{names['focus_range_diopters']} = {focus_range_diopters!r} is out of range; "
+                f"allowed: 0 <= lo <= hi <= {MAX_ACCOMMODATION_DIOPTERS:g} diopters (1000 / "
+                "focus distance in mm, 0 = infinity; a human eye accommodates by at most about "
+                "10 D). A fixed focus nearer than that: give the same value twice."
+            )
+        if not _inside(nominal_focus_diopters, lo, hi):
+            raise ValueError(
+                f"{names['focus']} is {nominal_focus_diopters:.6g} diopters, outside "
+                f"{names['focus_range_diopters']} = {focus_range_diopters!r}; allowed: lo <= "
+                "nominal <= hi (diopters = 1000 / focus distance in mm, 0 = infinity). Widen "
+                "the range or move the nominal focus into it."
+            )
+    _check_number(names["gaze_deg"], gaze_deg, 0.0, MAX_GAZE_DEG,
+                  "The largest gaze rotation from straight ahead in degrees; 0: no gaze.")
+    _check_number(names["rotation_mm"], rotation_mm, 0.0, MAX_ROTATION_MM,
+                  "Pupil to the eye's centre of rotation, about 10 to 13 mm (default 11).")
+
+
+# ---------------------------------------------------------------------------------------------
+# A batch of eye states
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class EyeStates:
+    """A batch of S eye states, each with a quadrature weight; arrays are float64, read-only.
+
+    offset_mm: (S, 2) pupil-centre position (x, y) in the scene frame (absolute, like
+        Eye.positions_mm), gaze shift included.
+    pupil_mm: (S,) pupil diameters.
+    focus_diopters: (S,) accommodation, 1000 / focus distance in mm; 0 = infinity.
+    gaze_deg: (S, 2) the gaze rotation (x, y) that produced part of the offset (for reports).
+    weight: (S,) non-negative weights summing to 1 (renormalised exactly on construction).
+    """
+
+    offset_mm: np.ndarray
+    pupil_mm: np.ndarray
+    focus_diopters: np.ndarray
+    gaze_deg: np.ndarray
+    weight: np.ndarray
+
+    def __post_init__(self) -> None:
+        offset = np.array(self.offset_mm, dtype=np.float64)
+        if offset.ndim != 2 or offset.shape[1] != 2 or offset.shape[0] < 1:
+            raise ValueError(f"EyeStates.offset_mm has shape {offset.shape}; allowed: (S, 2) "
+                             "with S >= 1. Give one (x, y) pupil position per state.")
+        count = offset.shape[0]
+        arrays = {"offset_mm": offset}
+        for name, shape in (("pupil_mm", (count,)), ("focus_diopters", (count,)),
+                            ("gaze_deg", (count, 2)), ("weight", (count,))):
+            array = np.array(getattr(self, name), dtype=np.float64)
+            if array.shape != shape:
+                raise ValueError(f"EyeStates.{name} has shape {array.shape}; allowed: {shape}, "
+                                 f"one per state like offset_mm.")
+            arrays[name] = array
+        for name, array in arrays.items():
+            if not np.all(np.isfinite(array)):
+                raise ValueError(f"EyeStates.{name} holds non-finite values "
+                                 f"{array[~np.isfinite(array)][:3]}; allowed: finite numbers.")
+        checks = (("pupil_mm", arrays["pupil_mm"] > 0, "> 0 mm"),
+                  ("focus_diopters", arrays["focus_diopters"] >= 0, ">= 0 (0 = infinity)"),
+                  ("weight", arrays["weight"] >= 0, ">= 0"))
+        for name, ok, allowed in checks:
+            if not np.all(ok):
+                raise ValueError(f"EyeStates.{name} holds {arrays[name][~ok][:3]}; allowed: "
+                                 f"{allowed}.")
+        total = float(arrays["weight"].sum())
+        if abs(total - 1) > _WEIGHT_SUM_SLACK:
+            raise ValueError(f"EyeStates.weight sums to {total!r}; allowed: a sum of 1. "
+                             "Divide the weights by their sum.")
+        arrays["weight"] = arrays["weight"] / total
+        for name, array in arrays.items():
+            object.__setattr__(self, name, _frozen(array))
+
+    def __len__(self) -> int:
+        return int(self.offset_mm.shape[0])
+
+    def focus_mm(self, i: int) -> float | None:
+        """State i's focus distance from the pupil in mm; None for infinity (0 diopters)."""
+        diopters = float(self.focus_diopters[i])
+        return None if diopters == 0 else 1000.0 / diopters
+
+    def subset(self, index: int | slice | Sequence[int] | np.ndarray) -> EyeStates:
+        """The states picked by an index, slice, index list or boolean mask; weights
+        renormalised."""
+        picked = np.atleast_1d(np.arange(len(self))[index])
+        weight = self.weight[picked]
+        total = weight.sum()
+        if picked.size == 0 or total <= 0:
+            raise ValueError(f"EyeStates.subset({index!r}) picks no state of positive weight; "
+                             "pick at least one.")
+        return EyeStates(self.offset_mm[picked], self.pupil_mm[picked],
+                         self.focus_diopters[picked], self.gaze_deg[picked], weight / total)
+
+    @staticmethod
+    def concat(parts: Sequence[EyeStates]) -> EyeStates:
+        """One batch from several; each part's weights are scaled by its share of the states
+        (so batches of equal weights give equal weights)."""
+        if not parts:
+            raise ValueError("EyeStates.concat got no batches; give at least one.")
+        total = sum(len(p) for p in parts)
+        return EyeStates(
+            np.concatenate([p.offset_mm for p in parts]),
+            np.concatenate([p.pupil_mm for p in parts]),
+            np.concatenate([p.focus_diopters for p in parts]),
+            np.concatenate([p.gaze_deg for p in parts]),
+            np.concatenate([p.weight * len(p) / total for p in parts]),
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# The distribution
+
+
+def iteration_seed(seed: int, iteration: int) -> int:
+    """A seed for iteration `iteration` of a run seeded `seed`: independent streams per
+    iteration, the same on every machine and after a resume."""
+    for name, value in (("seed", seed), ("iteration", iteration)):
+        if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+                and value >= 0):
+            raise ValueError(f"iteration_seed: {name} = {value!r}; allowed: a whole number >= 0.")
+    return int(np.random.SeedSequence([int(seed), int(iteration)]).generate_state(1)[0])
+
+
+def _radical_inverse(index: np.ndarray, base: int) -> np.ndarray:
+    """Van der Corput radical inverse of non-negative integers in `base`, float64."""
+    result = np.zeros(index.shape, dtype=np.float64)
+    remaining = index.astype(np.int64)
+    scale = 1.0 / base
+    while np.any(remaining > 0):
+        result += scale * (remaining % base)
+        remaining //= base
+        scale /= base
+    return result
+
+
+@dataclass(frozen=True)
+class EyeDistribution:
+    """The eye states a worn device sees; every part uniform and independent of the others.
+
+    centre_mm: (x, y) nominal pupil centre, in the scene frame.
+    eyebox_mm: (w, h) full size of the region the pupil centre takes (before gaze), uniform over
+        it; (0, 0): fixed at centre_mm.
+    eyebox_shape: "ellipse" (inscribed in w x h) or "rect".
+    pupil_range_mm: (lo, hi) pupil diameters, uniform in diameter.
+    nominal_pupil_mm: the nominal diameter, within the range.
+    focus_range_diopters: (lo, hi) accommodation, uniform in diopters (0 = infinity).
+    nominal_focus_diopters: the nominal accommodation, within the range.
+    gaze_deg: largest gaze rotation from straight ahead, degrees; the angles (ax, ay) are uniform
+        over the disk of that radius; 0: no gaze.
+    rotation_mm: pupil to the eye's centre of rotation (default 11 mm; see the module docstring
+        for the gaze model and its neglected terms).
+    """
+
+    centre_mm: tuple[float, float] = (0.0, 0.0)
+    eyebox_mm: tuple[float, float] = (0.0, 0.0)
+    eyebox_shape: EyeboxShape = "ellipse"
+    pupil_range_mm: tuple[float, float] = (4.0, 4.0)
+    nominal_pupil_mm: float = 4.0
+    focus_range_diopters: tuple[float, float] = (0.0, 0.0)
+    nominal_focus_diopters: float = 0.0
+    gaze_deg: float = 0.0
+    rotation_mm: float = ROTATION_MM
+
+    def __post_init__(self) -> None:
+        centre = _check_pair("EyeDistribution.centre_mm", self.centre_mm)
+        if not all(map(math.isfinite, centre)):
+            raise ValueError(f"EyeDistribution.centre_mm = {self.centre_mm!r}; allowed: finite "
+                             "[x, y] in mm.")
+        _check_number("EyeDistribution.nominal_pupil_mm", self.nominal_pupil_mm, 0.0,
+                      MAX_PUPIL_MM, "A human pupil is about 2 to 8 mm across.", positive=True)
+        _check_number("EyeDistribution.nominal_focus_diopters", self.nominal_focus_diopters, 0.0,
+                      math.inf, "Diopters are 1000 / focus distance in mm; 0 = infinity.")
+        names = {k: f"EyeDistribution.{k}" for k in (
+            "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters", "gaze_deg",
+            "rotation_mm")}
+        names["pupil"] = "EyeDistribution.nominal_pupil_mm"
+        names["focus"] = "EyeDistribution.nominal_focus_diopters"
+        check_fields(names, eyebox_mm=self.eyebox_mm, eyebox_shape=self.eyebox_shape,
+                     pupil_range_mm=self.pupil_range_mm, nominal_pupil_mm=self.nominal_pupil_mm,
+                     focus_range_diopters=self.focus_range_diopters,
+                     nominal_focus_diopters=self.nominal_focus_diopters, gaze_deg=self.gaze_deg,
+                     rotation_mm=self.rotation_mm)
+        for name, value in (("centre_mm", centre), ("eyebox_mm", self.eyebox_mm),
+                            ("pupil_range_mm", self.pupil_range_mm),
+                            ("focus_range_diopters", self.focus_range_diopters)):
+            object.__setattr__(self, name, _check_pair(name, value))
+        for name in ("nominal_pupil_mm", "nominal_focus_diopters", "gaze_deg", "rotation_mm"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
+    @property
+    def is_point(self) -> bool:
+        """True when every state is the nominal one (no eyebox, no ranges, no gaze)."""
+        return (self.eyebox_mm == (0.0, 0.0) and self.gaze_deg == 0.0
+                and self.pupil_range_mm == (self.nominal_pupil_mm,) * 2
+                and self.focus_range_diopters == (self.nominal_focus_diopters,) * 2)
+
+    # -- from unit-cube coordinates to states --------------------------------------------------
+
+    def _eyebox_offsets(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(N, 2) lateral offsets from the centre, uniform over the eyebox for uniform u, v."""
+        half_w, half_h = self.eyebox_mm[0] / 2, self.eyebox_mm[1] / 2
+        if self.eyebox_shape == "rect":
+            return np.stack([(2 * u - 1) * half_w, (2 * v - 1) * half_h], axis=-1)
+        radius, angle = np.sqrt(u), 2 * math.pi * v
+        return np.stack([half_w * radius * np.cos(angle), half_h * radius * np.sin(angle)],
+                        axis=-1)
+
+    def _states(self, unit: np.ndarray, weight: np.ndarray | None = None) -> EyeStates:
+        """States from (N, 6) points of the unit cube: eyebox (2), gaze (2), pupil, focus."""
+        count = unit.shape[0]
+        box = self._eyebox_offsets(unit[:, 0], unit[:, 1])
+        radius, angle = self.gaze_deg * np.sqrt(unit[:, 2]), 2 * math.pi * unit[:, 3]
+        gaze = np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=-1)
+        offset = np.asarray(self.centre_mm) + box + self.rotation_mm * np.sin(np.radians(gaze))
+        lo, hi = self.pupil_range_mm
+        pupil = lo + (hi - lo) * unit[:, 4]
+        f_lo, f_hi = self.focus_range_diopters
+        focus = f_lo + (f_hi - f_lo) * unit[:, 5]
+        if weight is None:
+            weight = np.full(count, 1.0 / count)
+        return EyeStates(offset, pupil, focus, gaze, weight)
+
+    def _fixed(self, count: int, *, pupil_mm: np.ndarray | None = None,
+               focus_diopters: np.ndarray | None = None) -> EyeStates:
+        """`count` nominal states, with pupils or focuses replaced when given."""
+        return EyeStates(
+            np.tile(np.asarray(self.centre_mm), (count, 1)),
+            np.full(count, self.nominal_pupil_mm) if pupil_mm is None else pupil_mm,
+            np.full(count, self.nominal_focus_diopters) if focus_diopters is None
+            else focus_diopters,
+            np.zeros((count, 2)),
+            np.full(count, 1.0 / count),
+        )
+
+    # -- batches ------------------------------------------------------------------------------
+
+    def sample(self, count: int, seed: int) -> EyeStates:
+        """`count` states drawn independently (equal weights); deterministic in (count, seed).
+
+        All six coordinates are drawn whether or not they vary, so two distributions sampled
+        with the same seed use the same random numbers (common random numbers).
+        """
+        _check_count("sample", count)
+        _check_seed("sample", seed)
+        rng = np.random.Generator(np.random.PCG64(int(seed)))
+        return self._states(rng.random((count, _DIMS)))
+
+    def nominal(self) -> EyeStates:
+        """The one nominal state: centre, nominal pupil and focus, no gaze."""
+        return self._fixed(1)
+
+    def evaluation_states(self, count: int, seed: int = 0) -> EyeStates:
+        """A fixed low-discrepancy set of `count` states covering the distribution (equal
+        weights), for judging a part: percentiles over it converge much faster than over random
+        draws.
+
+        The Halton sequence (bases 2, 3, 5, 7, 11, 13, index 1 to count) gives the varying
+        coordinates in the order eyebox (2), gaze (2), pupil, focus, the lowest bases to the
+        first; seed > 0 shifts it on the unit torus (Cranley-Patterson rotation) by a random
+        vector, for an independent set of the same quality.
+        """
+        _check_count("evaluation_states", count)
+        _check_seed("evaluation_states", seed)
+        varying = [self.eyebox_mm[0] > 0 or self.eyebox_mm[1] > 0] * 2
+        varying += [self.gaze_deg > 0 and self.rotation_mm > 0] * 2
+        varying += [self.pupil_range_mm[0] < self.pupil_range_mm[1],
+                    self.focus_range_diopters[0] < self.focus_range_diopters[1]]
+        unit = np.full((count, _DIMS), 0.5)
+        index = np.arange(1, count + 1)
+        shift = (np.random.Generator(np.random.PCG64(int(seed))).random(_DIMS) if seed
+                 else np.zeros(_DIMS))
+        primes = iter(_PRIMES)
+        for dim, varies in enumerate(varying):
+            if varies:
+                unit[:, dim] = (_radical_inverse(index, next(primes)) + shift[dim]) % 1.0
+        return self._states(unit)
+
+    def eyebox_grid(self, n: int) -> tuple[EyeStates, np.ndarray]:
+        """n x n pupil positions over the eyebox's bounding box, at the nominal pupil and focus.
+
+        Returns all n * n states, row-major with row 0 at +y (the top, like images) and column
+        0 at -x, at the centres of an n x n division of the box; and `inside` (n, n) bool, True
+        where the position lies in the eyebox shape. Weights are equal over the inside states
+        and 0 outside, so a weighted mean is one over the eyebox. A zero-size axis puts every
+        column (row) at the centre.
+        """
+        _check_count("eyebox_grid", n)
+        w, h = self.eyebox_mm
+        steps = (np.arange(n) + 0.5) / n * 2 - 1  # -1 to 1, cell centres
+        ys, xs = np.meshgrid(-steps, steps, indexing="ij")  # row 0 at +y
+        if self.eyebox_shape == "rect":
+            inside = np.ones((n, n), dtype=bool)
+        else:
+            inside = (xs * (w > 0)) ** 2 + (ys * (h > 0)) ** 2 <= 1 + 1e-12
+        offset = np.stack([xs * w / 2, ys * h / 2], axis=-1).reshape(-1, 2)
+        count = n * n
+        weight = inside.reshape(-1) / inside.sum()
+        states = EyeStates(offset + np.asarray(self.centre_mm),
+                           np.full(count, self.nominal_pupil_mm),
+                           np.full(count, self.nominal_focus_diopters), np.zeros((count, 2)),
+                           weight)
+        return states, inside
+
+    def pupil_sweep(self, n: int) -> EyeStates:
+        """n pupils evenly over the range, lo to hi (n = 1: the nominal), at the nominal
+        position and focus, equal weights."""
+        _check_count("pupil_sweep", n)
+        pupils = (np.array([self.nominal_pupil_mm]) if n == 1
+                  else np.linspace(*self.pupil_range_mm, n))
+        return self._fixed(n, pupil_mm=pupils)
+
+    def focus_sweep(self, n: int) -> EyeStates:
+        """n accommodations evenly over the range in diopters, lo to hi (n = 1: the nominal),
+        at the nominal position and pupil, equal weights."""
+        _check_count("focus_sweep", n)
+        focus = (np.array([self.nominal_focus_diopters]) if n == 1
+                 else np.linspace(*self.focus_range_diopters, n))
+        return self._fixed(n, focus_diopters=focus)
+
+
+_MAX_STATES = 10_000_000
+
+
+def _check_count(what: str, count: int) -> None:
+    if not (isinstance(count, (int, np.integer)) and not isinstance(count, bool)
+            and 1 <= count <= _MAX_STATES):
+        raise ValueError(f"EyeDistribution.{what}: count = {count!r}; allowed: a whole number "
+                         f"from 1 to {_MAX_STATES}.")
+
+
+def _check_seed(what: str, seed: int) -> None:
+    if not (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0):
+        raise ValueError(f"EyeDistribution.{what}: seed = {seed!r}; allowed: a whole number "
+                         ">= 0 (see iteration_seed).")
+
+
+def distribution_of(eye: Eye) -> EyeDistribution:
+    """The distribution a scene's Eye describes: centred on its first (nominal) position; a
+    None range is the nominal point."""
+    focus = eye.focus_diopters
+    pupil_range = eye.pupil_range_mm or (eye.pupil_mm, eye.pupil_mm)
+    focus_range = eye.focus_range_diopters or (focus, focus)
+    # Keep the nominal exactly inside a range whose end it equals up to 1000 / mm rounding.
+    focus = min(max(focus, focus_range[0]), focus_range[1])
+    return EyeDistribution(
+        centre_mm=eye.positions_mm[0],
+        eyebox_mm=eye.eyebox_mm,
+        eyebox_shape=eye.eyebox_shape,
+        pupil_range_mm=pupil_range,
+        nominal_pupil_mm=eye.pupil_mm,
+        focus_range_diopters=focus_range,
+        nominal_focus_diopters=focus,
+        gaze_deg=eye.gaze_deg,
+        rotation_mm=eye.rotation_mm,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Judging over states
+
+
+def percentiles(values: Sequence[float] | np.ndarray, weights: Sequence[float] | np.ndarray | None,
+                qs: Sequence[float] = (10, 50, 90)) -> np.ndarray:
+    """Weighted percentiles (len(qs),) of `values` (S,) with `weights` (S,) (None: equal).
+
+    Definition: sort the values; the k-th (weight w_k, weights normalised to sum 1, zero
+    weights dropped) sits at the midpoint of its share of the cumulative weight,
+    p_k = 100 (W_k - w_k / 2) with W_k the cumulative weight up to and including it; the
+    percentile q is linear interpolation in p, clamped to the smallest / largest value outside
+    [p_first, p_last]. With equal weights this is numpy's method="hazen" (p_k = 100 (k + 1/2) /
+    S) exactly, and within one gap between neighbouring sorted values of its default "linear".
+    """
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    w = np.full(v.shape, 1.0) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != v.shape or v.size == 0:
+        raise ValueError(f"percentiles: {v.size} values and weights of shape {w.shape}; allowed: "
+                         "one weight per value, at least one value.")
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(w)) and np.all(w >= 0)
+            and w.sum() > 0):
+        raise ValueError("percentiles: values must be finite and weights finite, >= 0, with a "
+                         "positive sum.")
+    q = np.asarray(qs, dtype=np.float64)
+    if not np.all((q >= 0) & (q <= 100)):
+        raise ValueError(f"percentiles: qs = {qs!r}; allowed: 0 to 100.")
+    keep = w > 0
+    v, w = v[keep], w[keep]
+    order = np.argsort(v, kind="stable")
+    v, w = v[order], w[order] / w.sum()
+    position = 100.0 * (np.cumsum(w) - w / 2)
+    return np.interp(q, position, v)

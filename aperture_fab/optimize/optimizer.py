@@ -1,0 +1,477 @@
+"""Optimize the plate's open-area fractions (and the display content) so the view matches targets.
+
+The loss is DESIGN.md's: the MSE between the target and the view scaled by its least-squares gain,
+averaged over targets, plus an optional light-efficiency term, per eye state; each iteration
+draws its eye states afresh from the eye distribution (`aperture_fab.optics.eyes`) and takes their
+expected loss, or the mean over the worst share of them (`tail_share`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.fabrication.quantize import MadeSizes
+from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
+from aperture_fab.optics.model import Renderer, render_open_states
+from aperture_fab.optics.scene import Eye, Scene
+from aperture_fab.optimize.budget import check_budget
+
+__all__ = [
+    "MaskDesign",
+    "Interrupted",
+    "DivergedError",
+    "combine_states",
+    "gain_mse",
+    "gain_mse_states",
+    "position_states",
+    "psnr_db",
+    "training_states",
+    "resolve_device",
+    "optimize",
+    "initial_design",
+    "fit_display",
+]
+
+#: The cosine schedule decays the learning rate to this share of its start.
+COSINE_FLOOR = 0.05
+#: Initial logit span: closed cells start at this share of the allowed range, so they can open.
+INIT_CLOSED_SHARE = 0.02
+#: Share of the snapped iterations after which only the display content moves.
+FROZEN_PLATE_START = 0.5
+#: MLEM iterations per eye state and design iteration of a tracked design (see _tracked_loss).
+TRACKED_SOLVE_ITERATIONS = 2
+#: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
+EFFICIENCY_PUPIL_SAMPLES = 32
+
+
+@dataclass(frozen=True)
+class MaskDesign:
+    """An optimized plate and the display content that goes with it.
+
+    open_fraction: (rows, cols) float64, open-area fraction of each cell's hole.
+    displays: (T, C, H, W) float64, linear display content per target.
+    loss_history: (N,) float64, loss per iteration.
+    bounds: (a_min, a_max), the open-area fractions the optimizer was allowed.
+    stopped: why it stopped: "completed" or "plateau".
+    continuous: when the last iterations saw the plate snapped to makeable holes, the design
+        (open_fraction, displays) just before: the unconstrained optimum. `open_fraction` is
+        then makeable as it is (every value one of MadeSizes). None otherwise.
+    """
+
+    open_fraction: np.ndarray
+    displays: np.ndarray
+    loss_history: np.ndarray
+    bounds: tuple[float, float]
+    stopped: str
+    continuous: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class Interrupted(Exception):
+    """The run was interrupted (Ctrl-C); `state` resumes it with `optimize(..., state=state)`."""
+
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__(f"interrupted at iteration {state['iteration']}")
+        self.state = state
+
+
+class DivergedError(FloatingPointError):
+    """The loss became NaN or infinite."""
+
+
+def gain_mse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """MSE between target and view after the view's least-squares gain: shapes, not level."""
+    gain = (view * target).sum() / ((view * view).sum() + 1e-20)
+    return ((gain * view - target) ** 2).mean()
+
+
+def psnr_db(mse: float) -> float:
+    """PSNR for a peak of 1 (linear light in [0, 1])."""
+    return 10 * math.log10(1 / max(mse, 1e-20))
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device = {name!r} was asked for but CUDA is not available here; "
+                         "use --device cpu or auto.")
+    return torch.device(name)
+
+
+def _logit(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(1e-4, 1 - 1e-4)
+    return torch.log(x) - torch.log1p(-x)
+
+
+def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Tensor,
+                   settings: OptimizerSettings, bounds: tuple[float, float]) -> dict[str, Any]:
+    lo, hi = bounds
+    rows, cols = scene.plate.cells[1], scene.plate.cells[0]
+    gen = torch.Generator().manual_seed(settings.seed)
+    displays = target_displays.clone()
+    if settings.init == "random":
+        share = torch.rand(rows, cols, generator=gen, dtype=torch.float64)
+    elif settings.init == "uniform":
+        share = torch.full((rows, cols), 0.5, dtype=torch.float64)
+    else:
+        array = regular_pinholes(scene, min_fraction=lo)
+        a = torch.as_tensor(array.open_fraction)
+        share = torch.where(a > 0, (a - lo) / (hi - lo), torch.full_like(a, INIT_CLOSED_SHARE))
+        share = share.clamp(INIT_CLOSED_SHARE, 1 - INIT_CLOSED_SHARE)
+        if settings.display == "optimized":
+            displays = torch.stack([elemental_display(scene, array, t) for t in targets])
+    state: dict[str, Any] = {
+        "iteration": 0,
+        "history": [],
+        "best": math.inf,
+        "best_iteration": 0,
+        "mask_logits": _logit(share),
+        # Display content is optimized directly and projected onto [0, 1] after each step: a
+        # sigmoid would freeze the black and white pixels that elemental images are full of.
+        "display": displays.clamp(0, 1) if settings.display == "optimized" else None,
+        "optimizer": None,
+        # Fabrication-aware phase: the first iteration that sees makeable holes, and the
+        # design just before it.
+        "snap_from": settings.iterations - round(settings.quantize_share * settings.iterations),
+        "continuous": None,
+    }
+    return state
+
+
+def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
+    """The nearest makeable fraction forward, the identity backward (straight through), so
+    the loss sees the holes the process makes and the gradient still moves every cell."""
+    with torch.no_grad():
+        if made.levels is None:
+            snap = torch.where(a < made.lo / 2, torch.zeros_like(a), a.clamp(made.lo, made.hi))
+        else:
+            levels = torch.as_tensor(made.levels, dtype=a.dtype, device=a.device)
+            index = torch.searchsorted(levels, a.contiguous()).clamp(1, len(levels) - 1)
+            below, above = levels[index - 1], levels[index]
+            snap = torch.where(a - below <= above - a, below, above)
+    return a + (snap - a).detach()
+
+
+def gain_mse_states(views: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """`gain_mse` of each of a batch of views (S, C, ny, nx) against one target: (S,)."""
+    flat = views.reshape(views.shape[0], -1)
+    goal = target.reshape(1, -1)
+    gain = (flat * goal).sum(1, keepdim=True) / ((flat * flat).sum(1, keepdim=True) + 1e-20)
+    return ((gain * flat - goal) ** 2).mean(1)
+
+
+def position_states(eye: Eye) -> EyeStates:
+    """The scene's fixed eyebox positions (eye.positions_mm, eye.weights) as eye states with
+    the nominal pupil and focus."""
+    count = len(eye.positions_mm)
+    diopters = 0.0 if eye.focus_mm is None else 1000.0 / eye.focus_mm
+    return EyeStates(np.asarray(eye.positions_mm, dtype=np.float64),
+                     np.full(count, eye.pupil_mm), np.full(count, diopters),
+                     np.zeros((count, 2)), np.asarray(eye.weights) / sum(eye.weights))
+
+
+def training_states(scene: Scene, settings: OptimizerSettings, iteration: int) -> EyeStates:
+    """The eye states iteration `iteration` is judged at: `settings.eye_states` states drawn
+    afresh from the eye distribution, seeded by (settings.seed, iteration) so that a resumed
+    run draws the same ones; or, when the distribution is a single point, the scene's fixed
+    eyebox positions."""
+    distribution = distribution_of(scene.eye)
+    if distribution.is_point:
+        return position_states(scene.eye)
+    return distribution.sample(settings.eye_states, iteration_seed(settings.seed, iteration))
+
+
+def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: float
+                   ) -> torch.Tensor:
+    """One loss from per-state losses (S,) and weights (S,) summing to 1: the expected loss
+    (tail_share 1), or the mean over the worst tail_share of the weight (a CVaR: the states are
+    taken from the worst down until their weight reaches tail_share, the last one in part)."""
+    if tail_share >= 1:
+        return (losses * weights).sum()
+    order = torch.argsort(losses.detach(), descending=True)
+    w = weights[order]
+    before = torch.cumsum(w, 0) - w
+    taken = torch.minimum(w, (tail_share - before).clamp(min=0))
+    return (losses[order] * taken).sum() / taken.sum()
+
+
+def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
+                 targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
+                 tail_share: float = 1.0) -> torch.Tensor:
+    """DESIGN.md's loss: gain-corrected MSE, averaged over targets, per eye state, plus
+    efficiency_weight x (1 - light efficiency); combined over the states by `combine_states`."""
+    per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
+    for t in range(targets.shape[0]):
+        views = renderer.render_states(a, renderer.display_stack(displays[t]), states)
+        per_state = per_state + gain_mse_states(views, targets[t])
+        if efficiency_weight > 0:
+            opens = render_open_states(renderer.scene, displays[t], states,
+                                       pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
+            efficiency = views.mean((1, 2, 3)) / (opens.mean((1, 2, 3)) + 1e-12)
+            per_state = per_state + efficiency_weight * (1 - efficiency)
+    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    return combine_states(per_state / targets.shape[0], weights, tail_share)
+
+
+def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
+                  targets: torch.Tensor, states: EyeStates, tail_share: float) -> torch.Tensor:
+    """The loss of a tracked design (optimizer.tracking = "tracked"): each eye state sees the
+    display content solved for it (`aperture_fab.optimize.tracking.solve_display`,
+    TRACKED_SOLVE_ITERATIONS
+    of MLEM warm-started from `displays`). No gradient flows through the solve: at a solved
+    display the loss is stationary in the display, so the plate's gradient is the partial one
+    (the envelope theorem; approximate, as a few iterations do not reach the optimum). Its
+    value is the tracked loss; its gradient moves the plate by the tracked loss and the warm
+    start `displays` by their own (untracked) loss, the plate held."""
+    from aperture_fab.optimize.tracking import solve_display  # tracking imports this module
+
+    per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
+    for t in range(targets.shape[0]):
+        solved = solve_display(renderer, a.detach(), targets[t], states, displays[t].detach(),
+                               TRACKED_SOLVE_ITERATIONS, keep_best=False).detach()
+        views = torch.cat([
+            renderer.render_states(a, renderer.display_stack(solved[s]), states.subset([s]))
+            for s in range(len(states))
+        ])
+        per_state = per_state + gain_mse_states(views, targets[t])
+    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    tracked = combine_states(per_state / targets.shape[0], weights, tail_share)
+    warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share)
+    return tracked + (warm - warm.detach())
+
+
+def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
+                   settings: OptimizerSettings, bounds: tuple[float, float] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The optimizer's starting point: open fractions (rows, cols) and displays (T, C, H, W)."""
+    lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
+    state = _initial_state(scene, torch.as_tensor(targets, dtype=torch.float64),
+                           torch.as_tensor(target_displays, dtype=torch.float64), settings,
+                           (lo, hi))
+    a = lo + (hi - lo) * torch.sigmoid(state["mask_logits"])
+    shown = state["display"]
+    displays = target_displays if shown is None else shown.numpy()
+    return a.numpy(), np.asarray(displays, dtype=np.float64)
+
+
+def _lr_at(settings: OptimizerSettings, iteration: int, snap_from: int | None = None) -> float:
+    """The learning rate; the cosine runs once over the continuous iterations and again over
+    the snapped ones (from snap_from), so that holes can still move between makeable sizes."""
+    if settings.schedule == "constant":
+        return settings.learning_rate
+    first, last = 0, settings.iterations
+    if snap_from is not None:
+        first, last = (snap_from, last) if iteration >= snap_from else (0, snap_from)
+    phase = min(1.0, (iteration - first) / max(1, last - first - 1))
+    return settings.learning_rate * (COSINE_FLOOR + (1 - COSINE_FLOOR)
+                                     * 0.5 * (1 + math.cos(math.pi * phase)))
+
+
+def optimize(
+    scene: Scene,
+    targets: np.ndarray,
+    target_displays: np.ndarray,
+    settings: OptimizerSettings,
+    *,
+    bounds: tuple[float, float] | None = None,
+    made: MadeSizes | None = None,
+    state: dict[str, Any] | None = None,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    progress: bool = True,
+) -> MaskDesign:
+    """Optimize a plate for targets (T, C, ny, nx) on the view grid, linear light.
+
+    target_displays: (T, C, H, W) the targets on the display's pixel grid (shown as is in
+    display mode "target", and the start of optimized displays for non-pinhole inits).
+    bounds: allowed open-area fractions (a_min, a_max); default (0, the largest hole a cell takes).
+    made: the fractions a process makes; the last settings.quantize_share of the iterations
+        (or all after a plateau) see the plate snapped to them, so the result is makeable.
+    state: a checkpoint from `on_checkpoint` or `Interrupted.state`, to resume.
+    """
+    device = resolve_device(settings.device)
+    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    check_budget(scene, settings, np.shape(targets), device=device)  # before any work
+    lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
+    if not 0 <= lo < hi <= 1:
+        raise ValueError(f"bounds = {(lo, hi)} must satisfy 0 <= a_min < a_max <= 1.")
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    shown_t = torch.as_tensor(target_displays, dtype=dtype, device=device)
+    expected = (scene.eye.view_pixels[1], scene.eye.view_pixels[0])
+    if target_t.ndim != 4 or tuple(target_t.shape[-2:]) != expected:
+        raise ValueError(f"targets have shape {tuple(target_t.shape)}; "
+                         f"expected (T, C, *{expected}).")
+    if state is not None:
+        state = copy.deepcopy(state)  # a checkpoint stays valid to resume from again
+    else:
+        state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
+                               (lo, hi))
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)
+    params = [mask_logits]
+    display_param = None
+    if state["display"] is not None:
+        display_param = state["display"].to(device, dtype).clone().requires_grad_(True)
+        params.append(display_param)
+    if settings.method == "adam":
+        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
+    else:
+        opt = torch.optim.SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
+    if state["optimizer"] is not None:
+        opt.load_state_dict(state["optimizer"])
+
+    def plate(iteration: int) -> torch.Tensor:
+        a = lo + (hi - lo) * torch.sigmoid(mask_logits)
+        if made is not None and iteration >= state["snap_from"]:
+            return _snapped(a, made)
+        return a
+
+    def loss_fn(iteration: int) -> torch.Tensor:
+        states = training_states(scene, settings, iteration)
+        if settings.tracking == "tracked" and display_param is not None:
+            return _tracked_loss(renderer, plate(iteration), display_param, target_t, states,
+                                 settings.tail_share)
+        displays = shown_t if display_param is None else display_param
+        return _design_loss(renderer, plate(iteration), displays, target_t, states,
+                            settings.efficiency_weight, settings.tail_share)
+
+    def keep_continuous() -> None:
+        with torch.no_grad():
+            state["continuous"] = (
+                plate(-1).detach().cpu().clone(),
+                None if display_param is None else display_param.detach().cpu().clone(),
+            )
+
+    # SGD steps on the summed squared error over the view (the dissertation's per-pixel scale:
+    # its lr 0.8 is meaningless on a mean); Adam is invariant to the scale.
+    scale = float(target_t[0].numel()) if settings.method == "sgd" else 1.0
+
+    def snapshot(iteration: int) -> dict[str, Any]:
+        return {
+            "iteration": iteration,
+            "history": list(state["history"]),
+            "best": state["best"],
+            "best_iteration": state["best_iteration"],
+            "mask_logits": mask_logits.detach().cpu().clone(),
+            "display": None if display_param is None else display_param.detach().cpu().clone(),
+            "optimizer": copy.deepcopy(opt.state_dict()),
+            "snap_from": state["snap_from"],
+            "continuous": state["continuous"],
+        }
+
+    stopped = "completed"
+    start = state["iteration"]
+    bar = tqdm(total=settings.iterations, initial=start, disable=not progress, unit="it",
+               desc="optimize", leave=False)
+    iteration = start
+    try:
+        for iteration in range(start, settings.iterations):
+            for group in opt.param_groups:
+                group["lr"] = _lr_at(settings, iteration,
+                                     None if made is None else state["snap_from"])
+            if made is not None and iteration == state["snap_from"]:
+                keep_continuous()
+                state["best"] = math.inf  # the snapped loss starts a new curve
+            opt.zero_grad(set_to_none=True)
+            loss = loss_fn(iteration)
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise DivergedError(
+                    f"the loss became {value} at iteration {iteration}; lower the learning rate "
+                    f"(now {settings.learning_rate}) or use precision float64."
+                )
+            (loss * scale).backward()
+            if made is not None and display_param is not None and iteration >= state[
+                    "snap_from"] + FROZEN_PLATE_START * (settings.iterations - state["snap_from"]):
+                mask_logits.grad = None  # the plate is settled: fit the display to it
+            opt.step()
+            if display_param is not None:
+                with torch.no_grad():
+                    display_param.clamp_(0, 1)
+            state["history"].append(value)
+            if value < state["best"] * (1 - settings.plateau_tolerance):
+                state["best"], state["best_iteration"] = value, iteration
+            bar.update(1)
+            bar.set_postfix(loss=f"{value:.3e}", psnr=f"{psnr_db(value):.1f}dB")
+            done = iteration + 1
+            if on_checkpoint is not None and done % settings.checkpoint_every == 0:
+                on_checkpoint(snapshot(done))
+            if settings.plateau_patience and iteration - state["best_iteration"] >= \
+                    settings.plateau_patience:
+                if made is not None and iteration + 1 < state["snap_from"]:
+                    state["snap_from"] = iteration + 1  # converged: go on to makeable holes
+                    continue
+                stopped = "plateau"
+                break
+    except KeyboardInterrupt:
+        bar.close()
+        # The iteration in flight did not step: resume from the last completed one.
+        raise Interrupted(snapshot(len(state["history"]))) from None
+    bar.close()
+    with torch.no_grad():
+        a = (lo + (hi - lo) * torch.sigmoid(mask_logits)).cpu().double().numpy()
+        displays = (shown_t if display_param is None else display_param).cpu().double().numpy()
+    continuous = None
+    if made is not None and state["continuous"] is not None:
+        a = made.snap(a)
+        kept_a, kept_display = state["continuous"]
+        continuous = (kept_a.double().numpy(),
+                      displays if kept_display is None else kept_display.double().numpy())
+    return MaskDesign(
+        open_fraction=a,
+        displays=displays,
+        loss_history=np.asarray(state["history"], dtype=np.float64),
+        bounds=(lo, hi),
+        stopped=stopped,
+        continuous=continuous,
+    )
+
+
+def fit_display(
+    scene: Scene,
+    targets: np.ndarray,
+    open_fraction: np.ndarray,
+    displays: np.ndarray,
+    settings: OptimizerSettings,
+    iterations: int,
+    *,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Re-fit the display content (T, C, H, W) to a fixed plate, e.g. the part as built, from
+    `displays`; the plate is hardware, the display content software. Returns the displays and
+    the loss history. Adam with the settings' learning rate and schedule, the same loss."""
+    device = resolve_device(settings.device)
+    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
+    opt = torch.optim.Adam([shown], lr=settings.learning_rate)
+    schedule = replace(settings, iterations=iterations)
+    history = []
+    for iteration in tqdm(range(iterations), desc="fit display", disable=not progress,
+                          leave=False):
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(schedule, iteration)
+        opt.zero_grad(set_to_none=True)
+        loss = _design_loss(renderer, a, shown, target_t,
+                            training_states(scene, settings, iteration), 0.0, settings.tail_share)
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise DivergedError(f"the display fit's loss became {value} at iteration "
+                                f"{iteration}; lower the learning rate.")
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            shown.clamp_(0, 1)
+        history.append(value)
+    return shown.detach().cpu().double().numpy(), np.asarray(history)

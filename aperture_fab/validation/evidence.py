@@ -1,0 +1,221 @@
+"""The validation report's contents from a validated design: report dict, figures, verdicts and
+the views archive. Values in, bytes out; the pipeline writes the files."""
+
+from __future__ import annotations
+
+import platform
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any
+
+import numpy as np
+
+from aperture_fab.config.config import Config, to_dict
+from aperture_fab.fabrication.part import Part
+from aperture_fab.fabrication.process import Process
+from aperture_fab.fabrication.quantize import layout_stats
+from aperture_fab.validation.figures import (
+    figure_eyebox_map,
+    figure_histogram,
+    figure_hole_map,
+    figure_loss,
+    figure_sweep,
+    figure_thumbnails,
+    figure_views,
+)
+from aperture_fab.validation.report import (
+    EYE_VARIANT_LABELS,
+    EYE_VARIANTS,
+    VARIANT_LABELS,
+    build_report,
+    scene_dict,
+    validate_report,
+    views_npz,
+)
+from aperture_fab.validation.report_html import report_html, verdicts
+from aperture_fab.validation.robustness import PERCENTILES, EyeQuality
+from aperture_fab.validation.validate import Validation
+
+__all__ = ["Evidence", "assemble", "eye_distribution_block", "eye_figures"]
+
+#: Wavelength for the diffraction verdict (green, where the eye is most sensitive).
+VERDICT_WAVELENGTH_MM = 530e-6
+#: Variants shown beside the target in the main figure, in order.
+SHOWN_VARIANTS = ("as_built", "optimized", "open", "regular_pinholes", "random",
+                  "as_built_mesh", "as_built_diffraction")
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """report: the report.json structure; html: report.html; views_npz: views.npz bytes."""
+
+    report: dict[str, Any]
+    html: str
+    views_npz: bytes
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for package in ("aperture-fab", "torch", "numpy", "trimesh", "manifold3d", "scikit-image"):
+        try:
+            out[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            out[package] = "not installed"
+    return out
+
+
+def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
+             displays: np.ndarray, loss_history: np.ndarray, part: Part, process: Process,
+             validation: Validation, timings_s: Mapping[str, float]) -> Evidence:
+    """Everything the report shows, from the design job's values."""
+    stats = layout_stats(part.layout)
+    fabrication = {
+        "process": process.name,
+        "holes": int(stats["hole_count"]),
+        "smallest_hole_diameter_mm": stats["smallest_hole_diameter_mm"],
+        "smallest_web_mm": stats["smallest_web_mm"],
+        "smallest_edge_web_mm": stats["smallest_edge_web_mm"],
+        "open_area_fraction": stats["open_area_fraction"],
+        "violations": [
+            {"rule": v.rule, "cell": None if v.cell is None else list(v.cell),
+             "value_mm": v.value_mm, "limit_mm": v.limit_mm, "resolution": v.resolution}
+            for v in part.layout.violations
+        ],
+    }
+    mesh = {"watertight": part.report.watertight, "genus": part.report.genus,
+            "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count}
+    tolerance = None
+    if validation.tolerance is not None:
+        t = validation.tolerance
+        tolerance = {"samples": t["samples"], "psnr_percentiles": t["psnr_percentiles"],
+                     "yield": t["yield"], "threshold_db": t["threshold_db"],
+                     "model": {k: v for k, v in t.items() if k not in (
+                         "samples", "psnr_percentiles", "yield", "threshold_db")}}
+    timings = {**timings_s, **validation.timings_s}
+    eyes = validation.eyes
+    report = build_report(metrics=validation.metrics, fabrication=fabrication, mesh=mesh,
+                          tolerance=tolerance, timings_s=timings,
+                          scene=scene_dict(config.scene), config=to_dict(config),
+                          versions=_versions(),
+                          eye_distribution=None if eyes is None else eye_distribution_block(
+                              eyes, names, targets))
+    if validation.mesh_stderr is not None:
+        report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
+
+    first = names[0]
+    views = validation.views
+    rows = [("target", targets[0])] + [
+        (VARIANT_LABELS.get(v, v), views[v][0, 0]) for v in SHOWN_VARIANTS if v in views]
+    figures = {
+        **({} if eyes is None else eye_figures(eyes, names, targets)),
+        "views": figure_views(rows, f"Target {first!r}: what the eye sees"),
+        "hole_map": figure_hole_map(_radii(part), part.layout.pitch_mm),
+        "display": figure_views([(f"display {n}", d) for n, d in zip(names, displays,
+                                                                       strict=True)],
+                                "Display content", gain_to_first=False),
+        "loss": figure_loss(loss_history),
+    }
+    if views["as_built"].shape[1] > 1:
+        figures["eyebox"] = figure_views(
+            [(f"eye at {p}", views["as_built"][0, k])
+             for k, p in enumerate(config.scene.eye.positions_mm)], "As built across the eyebox")
+    if validation.tolerance is not None:
+        figures["tolerance"] = figure_histogram(
+            np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])
+    blur = None
+    if stats["smallest_hole_diameter_mm"]:
+        from aperture_fab.optics.diffraction import airy_blur_px
+
+        blur = airy_blur_px(stats["smallest_hole_diameter_mm"], VERDICT_WAVELENGTH_MM,
+                            config.scene.eye.view_step)
+    lines = verdicts(report, diffraction_blur_px=blur)
+    report["verdicts"] = [line.as_dict() for line in lines]
+    validate_report(report)
+    html = report_html(report, figures, lines)
+    archive = {
+        f"{variant}/{name}" + (f"/pos{k}" if v.shape[1] > 1 else ""): v[t, k]
+        for variant, v in views.items()
+        for t, name in enumerate(names)
+        for k in range(v.shape[1])
+    }
+    return Evidence(report, html, views_npz(archive))
+
+
+def _radii(part: Part) -> np.ndarray:
+    nx, ny = part.layout.grid
+    radii = np.zeros((ny, nx))
+    radii[part.layout.cells[:, 0], part.layout.cells[:, 1]] = part.layout.radii_mm
+    return radii
+
+
+
+def _ordered(names: Any) -> list[str]:
+    """Variant names with those of EYE_VARIANTS first, in that order."""
+    return ([v for v in EYE_VARIANTS if v in names]
+            + [v for v in names if v not in EYE_VARIANTS])
+
+
+def _gain_psnr(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """PSNR after the least-squares gain (T, k) of views (T, k, C, ny, nx) against targets."""
+    flat = views.reshape(*views.shape[:2], -1)
+    goal = targets.reshape(targets.shape[0], 1, -1)
+    gain = (flat * goal).sum(-1, keepdims=True) / ((flat * flat).sum(-1, keepdims=True) + 1e-20)
+    mse = ((gain * flat - goal) ** 2).mean(-1)
+    return np.asarray(10 * np.log10(1 / np.maximum(mse, 1e-20)))
+
+
+def eye_distribution_block(eyes: EyeQuality, names: tuple[str, ...], targets: np.ndarray
+                           ) -> dict[str, Any]:
+    """report.json's "eye_distribution" block (aperture_fab.validation.report, EYE_DISTRIBUTION):
+    the
+    summary, the eyebox map, the pupil and focus sweeps and the thumbnails' offsets and PSNR.
+
+    targets: (T, C, ny, nx) linear, the targets the thumbnails are scored against."""
+    summary = eyes.summary()
+    order = _ordered(summary["variants"])
+    return {
+        "states": summary["states"],
+        "percentiles": list(PERCENTILES),
+        "targets": list(names),
+        "distribution": summary["distribution"],
+        "variants": {v: summary["variants"][v] for v in order},
+        "eyebox_map": {
+            "offsets_mm": eyes.map_offsets_mm, "inside": eyes.map_inside.astype(bool),
+            "psnr_db": {v: eyes.map_psnr_db[v] for v in _ordered(eyes.map_psnr_db)},
+        },
+        "pupil": {"pupil_mm": eyes.pupil_mm,
+                  "psnr_db": {v: eyes.pupil_psnr_db[v] for v in _ordered(eyes.pupil_psnr_db)}},
+        "focus": {"focus_diopters": eyes.focus_diopters,
+                  "psnr_db": {v: eyes.focus_psnr_db[v] for v in _ordered(eyes.focus_psnr_db)}},
+        "thumbnails": {
+            "variant": next(iter(eyes.psnr_db)), "offsets_mm": eyes.thumbnail_offsets_mm,
+            "psnr_db": _gain_psnr(eyes.thumbnails, targets),
+        },
+    }
+
+
+def eye_figures(eyes: EyeQuality, names: tuple[str, ...], targets: np.ndarray
+                ) -> dict[str, bytes]:
+    """The eye distribution's figures: the part's eyebox map (none for an eyebox of zero size),
+    PSNR against pupil and against focus, and the thumbnails."""
+    d = eyes.distribution
+    part = next(iter(eyes.psnr_db))
+    figures: dict[str, bytes] = {}
+    if part in eyes.map_psnr_db and (d.eyebox_mm[0] > 0 or d.eyebox_mm[1] > 0):
+        figures["eye_map"] = figure_eyebox_map(
+            eyes.map_psnr_db[part], eyes.map_offsets_mm, d.eyebox_mm, shape=d.eyebox_shape,
+            centre_mm=d.centre_mm, names=names)
+    for key, x, curves, label, shaded, nominal in (
+            ("eye_pupil", eyes.pupil_mm, eyes.pupil_psnr_db, "pupil diameter (mm)",
+             d.pupil_range_mm, d.nominal_pupil_mm),
+            ("eye_focus", eyes.focus_diopters, eyes.focus_psnr_db,
+             "focus (diopters, 0 = infinity)", d.focus_range_diopters,
+             d.nominal_focus_diopters)):
+        figures[key] = figure_sweep(
+            x, {EYE_VARIANT_LABELS.get(v, v): curves[v] for v in _ordered(curves)},
+            xlabel=label, shaded=shaded, nominal=nominal, names=names)
+    figures["eye_thumbnails"] = figure_thumbnails(
+        targets, eyes.thumbnails, eyes.thumbnail_offsets_mm,
+        _gain_psnr(eyes.thumbnails, targets), names)
+    return figures

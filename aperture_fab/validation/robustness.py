@@ -1,0 +1,215 @@
+"""How a part looks over the eye distribution: the headline figures of a design.
+
+A worn device sees many eye states (`aperture_fab.optics.eyes`), so a plate is judged by
+percentiles of
+its quality over a fixed, low-discrepancy set of states drawn from the scene's eye distribution
+(`EyeDistribution.evaluation_states`), each variant (the part and every baseline) the same way,
+with one display content for every state (untracked). Beside the percentiles: the quality over
+the eyebox (a map of pupil offsets at the nominal pupil and focus), against pupil diameter and
+against focus (nominal position), and views at a few offsets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from aperture_fab.metrics import metrics as view_metrics
+from aperture_fab.optics.eyes import EyeDistribution, EyeStates, distribution_of, percentiles
+from aperture_fab.optics.model import Renderer, render_open_states
+from aperture_fab.optics.scene import Scene
+
+__all__ = ["EyeQuality", "Variant", "judge_eyes", "PERCENTILES"]
+
+#: The percentiles the headline reports.
+PERCENTILES = (10, 50, 90)
+#: Eye states of the evaluation set (Halton points over the distribution).
+EVALUATION_STATES = 32
+#: Eyebox map size (n x n pupil offsets over the eyebox's bounding box).
+MAP_SIZE = 7
+#: Points of the pupil and focus sweeps.
+SWEEP_POINTS = 7
+#: Focus sweep when the distribution holds the focus fixed: relaxed (0 D) to 2 D.
+FOCUS_SWEEP_DIOPTERS = (0.0, 2.0)
+#: The open display's view is a pupil quadrature (model.render_open); these keep it quick.
+OPEN_PUPIL_SAMPLES = 64
+OPEN_SUBPIXELS = 2
+#: Offsets (as shares of the eyebox's half size) of the thumbnails.
+THUMBNAIL_SHARES = ((0.0, 0.0), (0.5, 0.0), (1.0, 0.0), (0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A plate and its display content, judged over the eye distribution.
+
+    open_fraction: (rows, cols) float64, or None for the open display (no plate).
+    displays: (T, C, H, W) float64 linear display content per target (one for every state).
+    """
+
+    open_fraction: np.ndarray | None
+    displays: np.ndarray
+
+
+@dataclass(frozen=True)
+class EyeQuality:
+    """Quality of each variant over the eye distribution.
+
+    distribution: the distribution judged.
+    states: the evaluation set (E states, equal weights).
+    psnr_db, ssim: {variant: (T, E) float64} per target and state (PSNR after gain).
+    nominal_psnr_db: {variant: (T,)} at the nominal state.
+    map_offsets_mm: (n, n, 2) pupil offsets of the eyebox map (row 0 at +y); map_inside (n, n).
+    map_psnr_db: {part: (T, n, n)} at the nominal pupil and focus (NaN outside the eyebox).
+    pupil_mm: (m,) and pupil_psnr_db {variant: (T, m)}: nominal position and focus.
+    focus_diopters: (m,) and focus_psnr_db {part: (T, m)}: nominal position and pupil.
+    thumbnail_offsets_mm: (k, 2); thumbnails: (T, k, C, ny, nx) views of the first variant,
+        scaled by their gain and clipped to [0, 1].
+    """
+
+    distribution: EyeDistribution
+    states: EyeStates
+    psnr_db: dict[str, np.ndarray]
+    ssim: dict[str, np.ndarray]
+    nominal_psnr_db: dict[str, np.ndarray]
+    map_offsets_mm: np.ndarray
+    map_inside: np.ndarray
+    map_psnr_db: dict[str, np.ndarray]
+    pupil_mm: np.ndarray
+    pupil_psnr_db: dict[str, np.ndarray]
+    focus_diopters: np.ndarray
+    focus_psnr_db: dict[str, np.ndarray]
+    thumbnail_offsets_mm: np.ndarray
+    thumbnails: np.ndarray
+
+    def percentiles(self, variant: str, metric: str = "psnr_db") -> dict[str, list[float]]:
+        """{"p10": [per target], "p50": ..., "p90": ...} of a metric over the states."""
+        values = getattr(self, metric)[variant]
+        table = [percentiles(row, self.states.weight, PERCENTILES) for row in values]
+        return {f"p{q}": [float(t[i]) for t in table] for i, q in enumerate(PERCENTILES)}
+
+    def summary(self) -> dict[str, Any]:
+        """Plain numbers for report.json: per variant the PSNR and SSIM percentiles and the
+        nominal PSNR per target, and the distribution judged."""
+        d = self.distribution
+        return {
+            "states": len(self.states),
+            "distribution": {
+                "centre_mm": list(d.centre_mm), "eyebox_mm": list(d.eyebox_mm),
+                "eyebox_shape": d.eyebox_shape, "pupil_range_mm": list(d.pupil_range_mm),
+                "focus_range_diopters": list(d.focus_range_diopters), "gaze_deg": d.gaze_deg,
+                "rotation_mm": d.rotation_mm,
+            },
+            "variants": {
+                name: {"psnr_db": self.percentiles(name),
+                       "ssim": self.percentiles(name, "ssim"),
+                       "nominal_psnr_db": [float(v) for v in self.nominal_psnr_db[name]]}
+                for name in self.psnr_db
+            },
+        }
+
+
+def _views(renderer: Renderer, variant: Variant, targets: np.ndarray, states: EyeStates
+           ) -> np.ndarray:
+    """Views (T, S, C, ny, nx) float64 of a variant for every target and state."""
+    dtype, device = renderer.dtype, renderer.device
+    out = []
+    with torch.no_grad():
+        for t in range(len(targets)):
+            display = torch.as_tensor(variant.displays[t], dtype=dtype, device=device)
+            if variant.open_fraction is None:
+                views = render_open_states(renderer.scene, display, states,
+                                           pupil_samples=OPEN_PUPIL_SAMPLES,
+                                           subpixels=OPEN_SUBPIXELS)
+            else:
+                a = torch.as_tensor(variant.open_fraction, dtype=dtype, device=device)
+                views = renderer.render_states(a, renderer.display_stack(display), states)
+            out.append(views.cpu().double().numpy())
+    return np.stack(out)
+
+
+def _psnr(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """PSNR after gain (T, S) of views (T, S, C, ny, nx) against targets (T, C, ny, nx)."""
+    flat = views.reshape(*views.shape[:2], -1)
+    goal = targets.reshape(targets.shape[0], 1, -1)
+    gain = (flat * goal).sum(-1, keepdims=True) / ((flat * flat).sum(-1, keepdims=True) + 1e-20)
+    mse = ((gain * flat - goal) ** 2).mean(-1)
+    return 10 * np.log10(1 / np.maximum(mse, 1e-20))
+
+
+def _states(offset_mm: np.ndarray, pupil_mm: np.ndarray | float,
+            focus_diopters: np.ndarray | float) -> EyeStates:
+    """Equally weighted states, the arguments broadcast against each other."""
+    offsets, pupils, focus = np.broadcast_arrays(np.atleast_2d(offset_mm)[:, 0],
+                                                 np.asarray(pupil_mm), np.asarray(focus_diopters))
+    ys = np.broadcast_to(np.atleast_2d(offset_mm)[:, 1], offsets.shape)
+    count = offsets.size
+    return EyeStates(np.stack([offsets, ys], -1).reshape(count, 2), pupils.reshape(count),
+                     focus.reshape(count), np.zeros((count, 2)), np.full(count, 1 / count))
+
+
+def _sweep(lo: float, hi: float, fixed: tuple[float, float]) -> np.ndarray:
+    if hi > lo:
+        return np.linspace(lo, hi, SWEEP_POINTS)
+    return np.linspace(*fixed, SWEEP_POINTS)
+
+
+def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], *,
+               device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+               count: int = EVALUATION_STATES, map_size: int = MAP_SIZE) -> EyeQuality:
+    """Judge variants over the scene's eye distribution.
+
+    targets: (T, C, ny, nx) linear, on the view grid. variants: {name: Variant}; the first is
+    the part: the eyebox map, the focus sweep (whose states away from infinity cannot share
+    display samples) and the thumbnails are rendered for it alone; the percentiles, the
+    nominal figure and the pupil sweep for every variant.
+    """
+    if not variants:
+        raise ValueError("judge_eyes got no variants; give at least the part.")
+    distribution = distribution_of(scene.eye)
+    renderer = Renderer(scene, device=device, dtype=dtype)
+    states = distribution.evaluation_states(count)
+    nominal = distribution.nominal()
+    grid, inside = distribution.eyebox_grid(map_size)
+    grid = grid.subset(np.flatnonzero(inside.reshape(-1)))
+    pupils = _sweep(*distribution.pupil_range_mm, (2.0, 8.0))
+    focus = _sweep(*distribution.focus_range_diopters, FOCUS_SWEEP_DIOPTERS)
+    centre = nominal.offset_mm[0]
+    pupil_states = _states(centre, pupils, distribution.nominal_focus_diopters)
+    focus_states = _states(centre, distribution.nominal_pupil_mm, focus)
+    half = np.asarray(distribution.eyebox_mm) / 2
+    thumb_offsets = centre + np.asarray(THUMBNAIL_SHARES) * half
+    thumb_states = _states(thumb_offsets, distribution.nominal_pupil_mm,
+                           distribution.nominal_focus_diopters)
+    psnr, ssim, nominal_psnr, map_psnr, pupil_psnr, focus_psnr = {}, {}, {}, {}, {}, {}
+    thumbnails = np.zeros(0)
+    for index, (name, variant) in enumerate(variants.items()):
+        views = _views(renderer, variant, targets, states)
+        psnr[name] = _psnr(views, targets)
+        ssim[name] = np.array([[view_metrics(v, targets[t], 1.0)["ssim"] for v in views[t]]
+                               for t in range(len(targets))])
+        nominal_psnr[name] = _psnr(_views(renderer, variant, targets, nominal), targets)[:, 0]
+        pupil_psnr[name] = _psnr(_views(renderer, variant, targets, pupil_states), targets)
+        if index > 0:
+            continue  # the map, focus sweep and thumbnails are the part's alone
+        focus_psnr[name] = _psnr(_views(renderer, variant, targets, focus_states), targets)
+        if variant.open_fraction is not None:
+            full = np.full((len(targets), map_size * map_size), np.nan)
+            full[:, inside.reshape(-1)] = _psnr(_views(renderer, variant, targets, grid), targets)
+            map_psnr[name] = full.reshape(len(targets), map_size, map_size)
+        thumbs = _views(renderer, variant, targets, thumb_states)
+        flat = thumbs.reshape(*thumbs.shape[:2], -1)
+        goal = targets.reshape(len(targets), 1, -1)
+        gain = (flat * goal).sum(-1) / ((flat * flat).sum(-1) + 1e-20)
+        thumbnails = np.clip(thumbs * gain[..., None, None, None], 0, 1)
+    offsets = grid_offsets(distribution, map_size)
+    return EyeQuality(distribution, states, psnr, ssim, nominal_psnr, offsets, inside, map_psnr,
+                      pupils, pupil_psnr, focus, focus_psnr, thumb_offsets, thumbnails)
+
+
+def grid_offsets(distribution: EyeDistribution, map_size: int) -> np.ndarray:
+    """Pupil offsets (n, n, 2) mm of the eyebox map, row 0 at +y."""
+    grid, _ = distribution.eyebox_grid(map_size)
+    return grid.offset_mm.reshape(map_size, map_size, 2)
