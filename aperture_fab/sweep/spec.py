@@ -402,7 +402,10 @@ def check_points(spec: SweepSpec, points: list[Point], check: Any) -> None:
         try:
             check({k: _thaw(v) for k, v in overrides.items()})
         except (ValueError, TypeError, KeyError) as err:
-            raise _fail(spec.source, where, f"{err} Fix: {fix}") from err
+            text = str(err).replace("the overrides (flags)", "the sweep file")
+            if "nknown key" in text:
+                fix = "rename the key to one of the allowed keys."
+            raise _fail(spec.source, where, f"{text} Fix: {fix}") from err
 
     base = dict(spec.base)
     attempt(base, "[base]", "change the value in [base] (or in the [sweep] config file).")
