@@ -409,6 +409,12 @@ def test_command_serial_exit_status(sweep_dir: Path, fake_design: list[dict[str,
     assert (out / "sweep.html").is_file() and (out / "results.parquet").is_file()
 
 
+def test_example_sweep_file_checks(capsys: pytest.CaptureFixture[str]) -> None:
+    example = Path(__file__).parent.parent / "examples" / "sweep.toml"
+    assert run_command(parse([str(example), "--dry-run"])) == 0
+    assert "24 grid points" in capsys.readouterr().out
+
+
 def _cli_has_sweep() -> bool:
     import contextlib
     import io
@@ -449,12 +455,14 @@ objectives = ["maximize eye_p10_psnr_db", "maximize light_efficiency"]
 
 
 @pytest.mark.slow
-def test_real_sweep_on_local_ray(sweep_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_real_sweep_on_local_ray(sweep_dir: Path, capsys: pytest.CaptureFixture[str],
+                                 monkeypatch: pytest.MonkeyPatch) -> None:
     import pyarrow.parquet as pq
 
     path = write_sweep(sweep_dir, REAL)
     out = sweep_dir / "out"
-    assert run_command(parse([str(path), "--workers", "2", "--out", str(out)])) == 0
+    monkeypatch.chdir(sweep_dir)  # a relative --out: the workers must still find it
+    assert run_command(parse(["sweep.toml", "--workers", "2", "--out", "out"])) == 0
     printed = capsys.readouterr().out
     assert "local Ray instance with 2 CPU(s)" in printed and "2 points: 2 ok" in printed
     rows = pq.read_table(out / "results.parquet").to_pylist()

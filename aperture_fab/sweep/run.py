@@ -16,6 +16,7 @@ Ray is optional: without it, backend "serial" runs the points one after another 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import secrets
@@ -418,6 +419,8 @@ def run_sweep(spec: SweepSpec, options: RunOptions,
               log: Callable[[str], None] = print) -> SweepOutcome:
     """Check every point, run the unfinished ones, and return what is recorded. Ctrl-C stops
     it (SweepOutcome.interrupted); the finished points stay recorded."""
+    # Absolute: Ray workers do not share this process's working folder.
+    options = dataclasses.replace(options, out=options.out.resolve())
     points = grid_points(spec) if spec.mode == "grid" else []
     check_points(spec, points, _checker(spec))  # before any job starts (and before Ray)
     (options.out / POINTS_DIR).mkdir(parents=True, exist_ok=True)
