@@ -6,7 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 __all__ = ["main"]
 
@@ -164,8 +164,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
     import numpy as np
 
     from aperture_fab.config.config import parse_toml, resolve
-    from aperture_fab.fabrication.part import FILE_NAMES, PART_FORMATS, PartFormat, make_part
-    from aperture_fab.pipeline.design_job import output_folder, write_part
+    from aperture_fab.fabrication.part import make_part
+    from aperture_fab.io.files import output_folder
+    from aperture_fab.io.formats import PART_FORMATS
+    from aperture_fab.pipeline.design_job import write_part
 
     config_path = args.config or args.design.parent / "design.toml"
     try:
@@ -183,16 +185,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
                      file_source=str(config_path))
     fabrication = _fabrication(args, config.extra)
     folder = output_folder(args.out)
-    suffix = args.out.suffix.lower().lstrip(".")
-    suffix = {"stp": "step"}.get(suffix, suffix)
-    formats: tuple[PartFormat, ...]
-    if suffix in PART_FORMATS:
-        formats = (cast(PartFormat, suffix),)
-    else:
-        formats = tuple(f for f in PART_FORMATS if f != "step" or fabrication.step)
+    named = [f for f in PART_FORMATS.values() if args.out.suffix.lower() in f.suffixes]
+    formats = ((named[0].name,) if named else
+               tuple(name for name in PART_FORMATS if name != "step" or fabrication.step))
     part = make_part(open_fraction, config.scene, fabrication)
     written = write_part(folder, part, fabrication, formats, progress=not args.quiet)
-    if suffix in PART_FORMATS and args.out.name != FILE_NAMES[suffix]:
+    if named and args.out.name != named[0].file_name:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         written[0].replace(args.out)
         written[0] = args.out
@@ -239,8 +237,9 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
+    from aperture_fab.io.files import output_folder
     from aperture_fab.optimize.optimizer import Interrupted
-    from aperture_fab.pipeline.design_job import output_folder, run_design
+    from aperture_fab.pipeline.design_job import run_design
     from aperture_fab.validation.validate import validation_settings
 
     config = _load_config(args)
@@ -276,7 +275,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from aperture_fab.pipeline.recheck import run_validate
+    from aperture_fab.pipeline.validate_job import run_validate
 
     result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
                           process=args.process, keep_display=args.keep_display,
@@ -309,7 +308,7 @@ def _pair_mm(text: str, flag: str) -> tuple[float, float]:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from aperture_fab.pipeline.recheck import run_render
+    from aperture_fab.pipeline.render_job import run_render
 
     focus: Any = None
     if args.focus is not None:
@@ -327,7 +326,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_display(args: argparse.Namespace) -> int:
-    from aperture_fab.pipeline.recheck import run_display
+    from aperture_fab.pipeline.render_job import run_display
 
     focus: Any = None
     if args.focus is not None:

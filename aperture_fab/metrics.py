@@ -13,9 +13,7 @@ import math
 
 import numpy as np
 
-from aperture_fab.optimize.optimizer import psnr_db
-
-__all__ = ["METRIC_KEYS", "gain", "metrics", "summarize"]
+__all__ = ["METRIC_KEYS", "gain", "gain_psnr_db", "gains", "metrics", "psnr_db", "summarize"]
 
 #: The keys of a metrics dict, in the order reports list them.
 METRIC_KEYS: tuple[str, ...] = ("mse", "psnr_db", "ssim", "light_efficiency")
@@ -50,6 +48,28 @@ def gain(view: np.ndarray, target: np.ndarray) -> float:
     if v.shape != t.shape:
         raise ValueError(f"view has shape {v.shape} but target has {t.shape}; they must match.")
     return float(np.sum(v * t) / (np.sum(v * v) + GAIN_EPS))
+
+
+def psnr_db(mse: float) -> float:
+    """PSNR (dB) for a peak of 1 (linear light in [0, 1])."""
+    return 10 * math.log10(1 / max(mse, GAIN_EPS))
+
+
+def gains(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """`gain` of many views at once: views (T, k, C, ny, nx), k views of each of the T targets
+    (T, C, ny, nx). Returns (T, k) float64."""
+    flat = views.reshape(*views.shape[:2], -1)
+    goal = targets.reshape(targets.shape[0], 1, -1)
+    return np.asarray((flat * goal).sum(-1) / ((flat * flat).sum(-1) + GAIN_EPS))
+
+
+def gain_psnr_db(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """PSNR (dB) after each view's least-squares gain, (T, k) for views (T, k, C, ny, nx) of the
+    targets (T, C, ny, nx)."""
+    flat = views.reshape(*views.shape[:2], -1)
+    goal = targets.reshape(targets.shape[0], 1, -1)
+    mse = ((gains(views, targets)[..., None] * flat - goal) ** 2).mean(-1)
+    return np.asarray(10 * np.log10(1 / np.maximum(mse, GAIN_EPS)))
 
 
 def _ssim(scaled: np.ndarray, target: np.ndarray) -> float:

@@ -91,15 +91,11 @@ import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.config.config import Config, resolve
 from aperture_fab.io.images import is_grey, resample
 from aperture_fab.optics import kernels
+from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import MAX_GRAD_BLOCKS_BYTES, Renderer
 from aperture_fab.optimize import budget
-from aperture_fab.optimize.optimizer import (
-    initial_design,
-    optimize,
-    resolve_device,
-    training_states,
-)
+from aperture_fab.optimize.optimizer import initial_design, optimize, training_states
 from aperture_fab.targets import EXAMPLES
 
 DEVICES = ("auto", "cpu", "cuda")

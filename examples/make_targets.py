@@ -11,8 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from aperture_fab.io.files import write_atomic
 from aperture_fab.io.images import encode_png
-from aperture_fab.pipeline.design_job import write_atomic
 from aperture_fab.targets import EXAMPLES
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "targets"

@@ -19,7 +19,6 @@ from aperture_fab.fabrication.part import (
     FabricationSettings,
     design_bounds,
     drawn_fractions,
-    eye_distance_mm,
     make_part,
 )
 from aperture_fab.fabrication.process import PROCESSES, resolve_process
@@ -36,7 +35,7 @@ RESIN = PROCESSES["resin"]
 
 
 def resin_sizes(config: Config) -> MadeSizes:
-    return made_sizes(config.scene.plate, RESIN, eye_distance_mm(config.scene))
+    return made_sizes(config.scene.plate, RESIN, config.scene.mid_plane_distance_mm)
 
 
 def test_resin_levels_are_the_made_areas_of_its_radius_steps(make_config: MakeConfig) -> None:

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.config.config import Config
 from aperture_fab.io.images import resample
+from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import (
     DivergedError,
@@ -25,7 +26,6 @@ from aperture_fab.optimize.optimizer import (
     gain_mse,
     initial_design,
     optimize,
-    psnr_db,
 )
 from aperture_fab.targets import asymmetric_marker, checker
 

@@ -16,17 +16,13 @@ import torch
 from PIL import Image
 
 import aperture_fab.optimize.optimizer as optimize_module
+import aperture_fab.io.files as files_module
 import aperture_fab.pipeline.design_job as pipeline_module
 from aperture_fab.config.config import Config, parse_toml, resolve
+from aperture_fab.io.files import load_targets, write_atomic
 from aperture_fab.io.images import encode_png, linear_to_srgb, resample
 from aperture_fab.optimize.optimizer import Interrupted
-from aperture_fab.pipeline.design_job import (
-    DesignResult,
-    design,
-    load_targets,
-    run_design,
-    write_atomic,
-)
+from aperture_fab.pipeline.design_job import DesignResult, design, run_design
 from aperture_fab.targets import asymmetric_marker, checker, pixel_art
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -153,7 +149,7 @@ def test_write_atomic_keeps_the_old_file_when_writing_fails(
     def fail(*args: Any, **kwargs: Any) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(pipeline_module.os, failing, fail)
+    monkeypatch.setattr(files_module.os, failing, fail)
     with pytest.raises(OSError, match="No space left"):
         write_atomic(path, "new " * 1000)
     monkeypatch.undo()
@@ -170,7 +166,7 @@ def test_write_atomic_keeps_the_old_file_on_ctrl_c(tmp_path: Path,
     def interrupt(*args: Any) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline_module.os, "fsync", interrupt)
+    monkeypatch.setattr(files_module.os, "fsync", interrupt)
     with pytest.raises(KeyboardInterrupt):
         write_atomic(path, b"new")
     monkeypatch.undo()
@@ -315,7 +311,7 @@ def test_a_folder_without_write_access_is_refused(tmp_path: Path, marker_png: Pa
                                                  make_config: MakeConfig,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     # The same check as below, where root would be allowed anyway.
-    monkeypatch.setattr(pipeline_module.os, "access", lambda path, mode: False)
+    monkeypatch.setattr(files_module.os, "access", lambda path, mode: False)
     with pytest.raises(ValueError, match=r"output folder .*out is not writable; choose another"):
         run_design([marker_png], tmp_path / "out" / "plate.stl", make_config(), progress=False)
 

@@ -26,7 +26,8 @@ from aperture_fab.io.formats import holes_csv, read_holes_csv
 from aperture_fab.io.images import srgb_to_linear
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Plate
-from aperture_fab.pipeline.recheck import load_part, read_design, run_render
+from aperture_fab.pipeline.render_job import run_render
+from aperture_fab.pipeline.saved import load_part, read_design
 from aperture_fab.validation.report import validate_report
 from aperture_fab.validation.validate import layout_fractions
 

@@ -378,7 +378,8 @@ def test_part_files_step_carries_the_parts_chamfer() -> None:
     # The STEP part must match the mesh (and DXF/SVG) outline: the same chamfer, same volume.
     from aperture_fab.config.config import resolve
     from aperture_fab.fabrication.mesh import mesh_volume_mm3
-    from aperture_fab.fabrication.part import fabrication_settings, make_part, part_files
+    from aperture_fab.fabrication.part import fabrication_settings, make_part
+    from aperture_fab.io.formats import part_files
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],

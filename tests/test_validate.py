@@ -118,15 +118,16 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
     import torch
 
     from aperture_fab.config.config import resolve
+    from aperture_fab.io.images import prepare_targets
     from aperture_fab.optics.model import Renderer
     from aperture_fab.optimize.optimizer import fit_display, gain_mse
-    from aperture_fab.pipeline.design_job import _prepare
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
         "plate.cells": [16, 16], "eye.view_pixels": [16, 16], "optimizer.device": "cpu",
         "optimizer.precision": "float64"})
-    targets, shown = _prepare(config, [digit("3")])
+    targets, shown = prepare_targets([digit("3")], config.scene.eye.view_pixels,
+                                     config.scene.display.pixels)
     rng = np.random.default_rng(0)
     plate = np.where(rng.random((16, 16)) < 0.3, 0.2, 0.0)
     fitted, history = fit_display(config.scene, targets, plate, shown, config.optimizer, 30)
@@ -162,12 +163,13 @@ def fitted_part():
     import torch
     from conftest import tiny_config
 
+    from aperture_fab.io.images import prepare_targets
     from aperture_fab.optimize.optimizer import fit_display
-    from aperture_fab.pipeline.design_job import _prepare
 
     config = tiny_config(**{"optimizer.precision": "float64"})
     scene = config.scene
-    targets, shown = _prepare(config, [digit("3")])
+    targets, shown = prepare_targets([digit("3")], config.scene.eye.view_pixels,
+                                     config.scene.display.pixels)
     rng = np.random.default_rng(0)
     rows, cols = np.nonzero(rng.random((16, 16)) < 0.4)
     xs, ys = scene.plate.cell_centres_mm()
@@ -203,8 +205,9 @@ def run_tolerance(fitted_part, position_sigma_mm=0.0, radius_bias_mm=0.0, **sett
 def nominal_psnr(fitted_part, radius_bias_mm=0.0):
     import torch
 
+    from aperture_fab.metrics import psnr_db
     from aperture_fab.optics.model import Renderer
-    from aperture_fab.optimize.optimizer import gain_mse, psnr_db
+    from aperture_fab.optimize.optimizer import gain_mse
 
     config, targets, fitted, layout = fitted_part
     renderer = Renderer(config.scene, dtype=torch.float64)

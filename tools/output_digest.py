@@ -2,7 +2,7 @@
 
 Runs `aperture-fab design` (small, seeded, every format), `validate` and `render` into a
 folder and prints one SHA-256 per file. Fields that legitimately differ between two runs of
-the same code are normalized first: stage timings, the report's digest of them, the 3MF zip
+the same code are normalized first: stage timings and package versions, the report's digest of them, the 3MF zip
 timestamps, the DXF header (dates, GUIDs), the STEP header date, the work folder's path.
 
     python tools/output_digest.py --work /tmp/digest > before.txt
@@ -45,6 +45,7 @@ def normalized(path: Path, work: Path) -> bytes:
     if path.name == "report.json":
         report = json.loads(data)
         report.pop("timings_s", None)
+        report.pop("versions", None)  # the installed packages, not the code's behaviour
         return json.dumps(report, sort_keys=True).encode()
     if path.suffix == ".html":
         text = TIMING_SECTION.sub("", data.decode())

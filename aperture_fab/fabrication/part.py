@@ -1,12 +1,12 @@
-"""From an optimized plate to a part: makeable holes (quantize), the solid (build), its files.
+"""From an optimized plate to a part: makeable holes (quantize) and the solid (build).
 
-Values in, values out; the pipeline writes the files.
+Values in, values out; `aperture_fab.io.formats` turns a part into files.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -14,31 +14,21 @@ import numpy as np
 
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import MeshReport, PlateMesh, build_mesh, check_mesh
-from aperture_fab.fabrication.process import Process, open_fraction_bounds, resolve_process
-from aperture_fab.fabrication.quantize import UnmakeableError, made_sizes, quantize
-from aperture_fab.io.formats import dxf_bytes, holes_csv, stl_bytes, svg_text, threemf_bytes
+from aperture_fab.fabrication.process import Process, UnmakeableError, resolve_process
+from aperture_fab.fabrication.quantize import made_sizes, quantize
+from aperture_fab.fabrication.rules import open_fraction_bounds
 from aperture_fab.optics.scene import Plate, Scene
 
 __all__ = [
-    "PART_FORMATS",
-    "PartFormat",
     "Part",
     "FabricationSettings",
     "fabrication_settings",
     "build_part",
     "design_bounds",
     "drawn_fractions",
-    "eye_distance_mm",
     "make_part",
-    "part_files",
 ]
 
-PartFormat = Literal["stl", "3mf", "csv", "dxf", "svg", "step"]
-PART_FORMATS: tuple[PartFormat, ...] = ("stl", "3mf", "csv", "dxf", "svg", "step")
-FILE_NAMES: dict[PartFormat, str] = {
-    "stl": "plate.stl", "3mf": "plate.3mf", "csv": "holes.csv", "dxf": "plate.dxf",
-    "svg": "plate.svg", "step": "plate.step",
-}
 #: Chord error of hole polygons as a share of the process's radius sigma: well inside tolerance.
 CHORD_SHARE_OF_SIGMA = 0.25
 MIN_CHORD_MM = 2e-4
@@ -96,7 +86,7 @@ def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:
     if a_max <= 0:
         return (0.0, scene.plate.max_open_fraction)  # unmakeable: make_part says why
     try:
-        made = made_sizes(scene.plate, process, eye_distance_mm(scene)).hi
+        made = made_sizes(scene.plate, process, scene.mid_plane_distance_mm).hi
     except UnmakeableError:  # forced past the process's rules: make_part records them
         made = a_max
     return (0.0, min(made, scene.plate.max_open_fraction))
@@ -130,11 +120,6 @@ def drawn_fractions(open_fraction: np.ndarray, plate: Plate, process: Process) -
     return math.pi * drawn_r**2 / cell
 
 
-def eye_distance_mm(scene: Scene) -> float:
-    """Plate mid-thickness to the pupil: where chief-ray holes converge."""
-    return scene.eye.eye_relief_mm + scene.plate.thickness_mm / 2
-
-
 def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSettings) -> Part:
     """Quantize to makeable holes and build the checked solid.
 
@@ -144,8 +129,8 @@ def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSett
     plate, eye = scene.plate, scene.eye
     process = settings.process
     layout = quantize(drawn_fractions(open_fraction, plate, process), plate, process,
-                      tilt_target_mm=eye.positions_mm[0], eye_distance_mm=eye_distance_mm(scene),
-                      force=settings.force)
+                      tilt_target_mm=eye.positions_mm[0],
+                      eye_distance_mm=scene.mid_plane_distance_mm, force=settings.force)
     web = 0.0 if settings.force else process.min_web_for(plate.thickness_mm)
     part = build_part(layout, settings, web)
     report = part.report
@@ -166,26 +151,3 @@ def build_part(layout: HoleLayout, settings: FabricationSettings, min_web_mm: fl
     mesh = build_mesh(layout, chord, min_web_mm=min_web_mm, corner_cut_mm=cut)
     return Part(layout, mesh, check_mesh(mesh), cut)
 
-
-def part_files(part: Part, formats: tuple[PartFormat, ...], settings: FabricationSettings,
-               progress: Callable[[int], None] | None = None) -> dict[str, bytes]:
-    """File name -> content for the requested formats."""
-    files: dict[str, bytes] = {}
-    for fmt in formats:
-        name = FILE_NAMES[fmt]
-        if fmt == "stl":
-            files[name] = stl_bytes(part.mesh)
-        elif fmt == "3mf":
-            files[name] = threemf_bytes(part.mesh)
-        elif fmt == "csv":
-            files[name] = holes_csv(part.layout).encode()
-        elif fmt == "dxf":
-            files[name] = dxf_bytes(part.layout, corner_cut_mm=part.corner_cut_mm)
-        elif fmt == "svg":
-            files[name] = svg_text(part.layout, settings.svg_polarity,
-                                   corner_cut_mm=part.corner_cut_mm).encode()
-        elif fmt == "step":
-            from aperture_fab.fabrication.step import step_bytes
-
-            files[name] = step_bytes(part.layout, progress, corner_cut_mm=part.corner_cut_mm)
-    return files

@@ -1,4 +1,6 @@
-"""File formats for the plate: meshes (STL, 3MF), 2D hole maps (DXF, SVG) and the hole table.
+"""File formats for the plate: meshes (STL, 3MF), 2D hole maps (DXF, SVG), the hole table and
+the STEP B-rep, and `PART_FORMATS`, the one registry of the files a part is written as (adding a
+format is one entry there).
 
 Every function returns bytes or str; writing them to disk is the caller's job. All lengths are
 millimetres. 2D maps use the part's x right, y up (seen from the eye) and draw each hole at its
@@ -13,8 +15,9 @@ import io
 import itertools
 import math
 import zipfile
-from collections.abc import Iterator
-from typing import Literal
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -22,8 +25,16 @@ from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh, outline_points_mm
 from aperture_fab.optics.scene import Plate
 
+if TYPE_CHECKING:
+    from aperture_fab.fabrication.part import FabricationSettings, Part
+
 __all__ = [
+    "PART_FORMATS",
+    "PART_SUFFIXES",
+    "FormatName",
+    "PartFormat",
     "Polarity",
+    "part_files",
     "dxf_bytes",
     "holes_csv",
     "read_holes_csv",
@@ -194,16 +205,25 @@ def threemf_bytes(mesh: PlateMesh) -> bytes:
 
 
 def holes_csv(layout: HoleLayout) -> str:
-    """One line per hole: row,col,x_mm,y_mm,radius_mm,axis_x,axis_y (mid-thickness centres)."""
+    """One line per hole: row,col,x_mm,y_mm,radius_mm,axis_x,axis_y (mid-thickness centres),
+    then one comment line (HOLES_CSV_COMMENT) with the plate's outline and thickness: last, so
+    that the column header stays the first line for CSV readers that expect it there."""
     lines = ["row,col,x_mm,y_mm,radius_mm,axis_x,axis_y\n"]
     table = np.column_stack([layout.cells, layout.centres_mm, layout.radii_mm, layout.axes])
     mm = f"%.{MM_DECIMALS}f"
     axis = f"%.{AXIS_DECIMALS}f"
     lines.append(_rows_text(table, f"%d,%d,{mm},{mm},{mm},{axis},{axis}\n"))
+    width, height = layout.outline_mm
+    # No commas: a CSV reader that ignores comments sees one stray field, not a fake hole.
+    lines.append(f"{HOLES_CSV_COMMENT} plate outline_mm {width:.{MM_DECIMALS}f} x "
+                 f"{height:.{MM_DECIMALS}f} (width x height centred on the axis) thickness_mm "
+                 f"{layout.thickness_mm:.{MM_DECIMALS}f}\n")
     return "".join(lines)
 
 
 HOLES_CSV_COLUMNS = ("row", "col", "x_mm", "y_mm", "radius_mm", "axis_x", "axis_y")
+#: A hole table line that starts with this is a comment (holes_csv writes the outline there).
+HOLES_CSV_COMMENT = "#"
 #: How far (per mm of z) a hole table's axes may differ from (E_xy - centres) / D and still be
 #: read as convergent: the table rounds centres to 1 nm and axes to 1e-9, far inside this.
 CSV_CONVERGE_AXIS_TOL = 1e-6
@@ -244,9 +264,11 @@ def read_holes_csv(
     axis is within CSV_CONVERGE_AXIS_TOL of (E_xy - centres) / D, the axes are set exactly to
     that (the table rounds them) and the layout keeps converge_mm; otherwise it gets the table's
     axes and converge_mm None. A hole is closed by deleting its line or setting its radius to 0.
-    Columns may come in any order; blank lines are skipped. source names the table in errors.
+    Columns may come in any order; blank lines and comment lines (starting with #, like the
+    outline line holes_csv writes last) are skipped. source names the table in errors.
     """
-    rows = [r for r in csv.reader(io.StringIO(text)) if any(field.strip() for field in r)]
+    rows = [r for r in csv.reader(io.StringIO(text)) if any(field.strip() for field in r)
+            and not r[0].lstrip().startswith(HOLES_CSV_COMMENT)]
     if not rows:
         raise ValueError(f"{source} is empty; a hole table starts with the header "
                          f"{','.join(HOLES_CSV_COLUMNS)}.")
@@ -357,3 +379,54 @@ def svg_text(layout: HoleLayout, polarity: Polarity, corner_cut_mm: float = 0.0)
         f'<g fill="{hole}" stroke="none">\n{circles}</g>\n'
         "</svg>\n"
     )
+
+
+# -- the registry of part files -----------------------------------------------------------------
+
+FormatName = Literal["stl", "3mf", "csv", "dxf", "svg", "step"]
+#: Called with the number of holes done so far (STEP, the slow one, reports its progress).
+Progress = Callable[[int], None]
+
+
+@dataclass(frozen=True)
+class PartFormat:
+    """One file a part is written as.
+
+    name: the format's key. file_name: its name in an output folder. suffixes: what `--out`
+    may end with to name it (lower case). write: (part, settings, progress) -> the file's bytes.
+    """
+
+    name: FormatName
+    file_name: str
+    suffixes: tuple[str, ...]
+    write: Callable[[Part, FabricationSettings, Progress | None], bytes]
+
+
+def _step(part: Part, settings: FabricationSettings, progress: Progress | None) -> bytes:
+    from aperture_fab.fabrication.step import step_bytes  # OCCT: an optional, heavy package
+
+    return step_bytes(part.layout, progress, corner_cut_mm=part.corner_cut_mm)
+
+
+#: Every format, in the order a design writes them (STEP only when asked for: it is slow).
+PART_FORMATS: dict[FormatName, PartFormat] = {f.name: f for f in (
+    PartFormat("stl", "plate.stl", (".stl",), lambda part, _s, _p: stl_bytes(part.mesh)),
+    PartFormat("3mf", "plate.3mf", (".3mf",), lambda part, _s, _p: threemf_bytes(part.mesh)),
+    PartFormat("csv", "holes.csv", (".csv",), lambda part, _s, _p: holes_csv(part.layout).encode()),
+    PartFormat("dxf", "plate.dxf", (".dxf",),
+               lambda part, _s, _p: dxf_bytes(part.layout, corner_cut_mm=part.corner_cut_mm)),
+    PartFormat("svg", "plate.svg", (".svg",),
+               lambda part, settings, _p: svg_text(part.layout, settings.svg_polarity,
+                                                   corner_cut_mm=part.corner_cut_mm).encode()),
+    PartFormat("step", "plate.step", (".step", ".stp"), _step),
+)}
+#: Suffixes that name a part file (an --out ending in one names the file, not a folder).
+PART_SUFFIXES: tuple[str, ...] = tuple(
+    suffix for fmt in PART_FORMATS.values() for suffix in fmt.suffixes if fmt.name != "csv")
+
+
+def part_files(part: Part, formats: tuple[FormatName, ...], settings: FabricationSettings,
+               progress: Progress | None = None) -> dict[str, bytes]:
+    """File name -> content for the requested formats."""
+    return {PART_FORMATS[name].file_name: PART_FORMATS[name].write(part, settings, progress)
+            for name in formats}

@@ -25,6 +25,7 @@ __all__ = [
     "encode_png",
     "is_grey",
     "linear_to_srgb",
+    "prepare_targets",
     "resample",
     "srgb_to_linear",
 ]
@@ -322,3 +323,22 @@ def is_grey(image: np.ndarray) -> bool:
         raise ValueError(f"is_grey image has {source.shape[0]} channels; give 1 or 3.")
     return bool(np.all(np.abs(source[0] - source[1]) <= GREY_TOLERANCE)
                 and np.all(np.abs(source[0] - source[2]) <= GREY_TOLERANCE))
+
+
+def prepare_targets(images: list[np.ndarray], view_pixels: tuple[int, int],
+                    display_pixels: tuple[int, int], channels: int | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Targets on the view grid (T, C, ny, nx) and on the display grid (T, C, H, W), float64.
+
+    images: (C, H, W) linear light. C is 1 when every target is grey, else 3; `channels` fixes
+    it when a saved design's display already has a channel count.
+    """
+    grey = all(is_grey(im) for im in images)
+    want = channels if channels is not None else (1 if grey else 3)
+    if want == 1 and not grey:
+        raise ValueError("the design's display is grey (one channel) but a target has colour; "
+                         "give grey targets, or design again with colour targets.")
+    prepared = [np.ascontiguousarray(im[:1] if want == 1 else
+                                     np.broadcast_to(im, (3, *im.shape[1:]))) for im in images]
+    return (np.stack([resample(im, view_pixels) for im in prepared]),
+            np.stack([resample(im, display_pixels) for im in prepared]))

@@ -296,7 +296,7 @@ class Renderer:
     @property
     def _axis_length(self) -> float:
         """Plate mid-thickness to the pupil: the length of a chief-ray hole axis."""
-        return self.scene.eye.eye_relief_mm + self.scene.plate.thickness_mm / 2
+        return self.scene.mid_plane_distance_mm
 
     @property
     def _search_extra_mm(self) -> float:

@@ -312,6 +312,12 @@ class Scene:
         return self.eye.eye_relief_mm + self.plate.thickness_mm
 
     @property
+    def mid_plane_distance_mm(self) -> float:
+        """Pupil to the plate's mid-thickness: where chief-ray holes converge, and the length
+        of their axes."""
+        return self.eye.eye_relief_mm + self.plate.thickness_mm / 2
+
+    @property
     def display_distance_mm(self) -> float:
         """Pupil to the display."""
         return self.plate_distance_mm + self.plate.gap_mm

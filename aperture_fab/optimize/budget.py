@@ -60,6 +60,7 @@ import torch
 
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.optics import kernels, model
+from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.scene import Scene
 
@@ -156,7 +157,7 @@ def _search_extra_mm(scene: Scene) -> float:
     plate, eye = scene.plate, scene.eye
     if plate.hole_axis != "chief_ray":
         return 0.0
-    axis = eye.eye_relief_mm + plate.thickness_mm / 2
+    axis = scene.mid_plane_distance_mm
     half = math.hypot(plate.size_mm[0] / 2 + abs(eye.positions_mm[0][0]),
                       plate.size_mm[1] / 2 + abs(eye.positions_mm[0][1]))
     return plate.thickness_mm / 2 * half / axis
@@ -335,13 +336,6 @@ def default_budget(device: torch.device | str = "cpu") -> tuple[int, str]:
     return int(DEFAULT_SHARE * free), f"{DEFAULT_SHARE:.0%} of the {free / GB:.1f} GB {where}"
 
 
-def _resolve(device: torch.device | str | None, settings: OptimizerSettings) -> torch.device:
-    name = settings.device if device is None else str(device)
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 def check_budget(
     scene: Scene,
     settings: OptimizerSettings,
@@ -358,7 +352,8 @@ def check_budget(
         memory available now). device: where it runs (default: settings.device); the backend
         is the Renderer's "auto" choice: kernel on the CPU, torch on CUDA.
     """
-    where = _resolve(device, settings)
+    # An explicit device may be one this machine lacks: the estimate is for planning.
+    where = resolve_device(settings.device) if device is None else torch.device(device)
     backend: Backend = "kernel" if where.type == "cpu" else "torch"
     shape = tuple(targets_shape) if targets_shape is not None else (1, 3)
     count = int(shape[0]) if len(shape) >= 1 and shape[0] > 0 else 1

@@ -20,7 +20,9 @@ from tqdm import tqdm
 
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.fabrication.quantize import MadeSizes
+from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.optics.model import Renderer, render_open_states
 from aperture_fab.optics.scene import Eye, Scene
@@ -34,9 +36,7 @@ __all__ = [
     "gain_mse",
     "gain_mse_states",
     "position_states",
-    "psnr_db",
     "training_states",
-    "resolve_device",
     "optimize",
     "initial_design",
     "fit_display",
@@ -92,20 +92,6 @@ def gain_mse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """MSE between target and view after the view's least-squares gain: shapes, not level."""
     gain = (view * target).sum() / ((view * view).sum() + 1e-20)
     return ((gain * view - target) ** 2).mean()
-
-
-def psnr_db(mse: float) -> float:
-    """PSNR for a peak of 1 (linear light in [0, 1])."""
-    return 10 * math.log10(1 / max(mse, 1e-20))
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device = {name!r} was asked for but CUDA is not available here; "
-                         "use --device cpu or auto.")
-    return torch.device(name)
 
 
 def _logit(x: torch.Tensor) -> torch.Tensor:
@@ -299,7 +285,7 @@ def optimize(
     state: a checkpoint from `on_checkpoint` or `Interrupted.state`, to resume.
     """
     device = resolve_device(settings.device)
-    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    dtype = torch_dtype(settings.precision)
     check_budget(scene, settings, np.shape(targets), device=device)  # before any work
     lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
     if not 0 <= lo < hi <= 1:
@@ -450,7 +436,7 @@ def fit_display(
     `displays`; the plate is hardware, the display content software. Returns the displays and
     the loss history. Adam with the settings' learning rate and schedule, the same loss."""
     device = resolve_device(settings.device)
-    dtype = torch.float64 if settings.precision == "float64" else torch.float32
+    dtype = torch_dtype(settings.precision)
     renderer = Renderer(scene, device=device, dtype=dtype)
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)

@@ -6,9 +6,10 @@ files: it reads the targets, writes every output atomically, checkpoints, and re
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import io
 import json
-import os
-import secrets
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -18,21 +19,18 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.config.config import Config, to_dict, to_toml
-from aperture_fab.fabrication.part import (
-    PART_FORMATS,
-    FabricationSettings,
-    Part,
-    PartFormat,
-    design_bounds,
-    eye_distance_mm,
-    make_part,
-    part_files,
-)
-from aperture_fab.fabrication.process import check_plate
+from aperture_fab.config.config import Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.fabrication.part import FabricationSettings, Part, design_bounds, make_part
+from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.quantize import made_sizes
-from aperture_fab.io.images import decode_image, encode_png, is_grey, resample
+from aperture_fab.fabrication.rules import check_plate
+from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
+from aperture_fab.io.images import encode_png, prepare_targets, resample
+from aperture_fab.io.manifest import publish, staging
+from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optimize.optimizer import (
     Interrupted,
@@ -41,8 +39,6 @@ from aperture_fab.optimize.optimizer import (
     gain_mse,
     initial_design,
     optimize,
-    psnr_db,
-    resolve_device,
 )
 from aperture_fab.validation.validate import (
     Validation,
@@ -51,13 +47,16 @@ from aperture_fab.validation.validate import (
     validate,
 )
 
-__all__ = ["DesignResult", "design", "run_design", "write_atomic", "load_targets"]
+__all__ = ["DesignResult", "design", "input_digests", "recorded_config", "run_design"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 #: The display is re-fitted to the part as built for this share of the design's iterations.
 FIT_SHARE = 3
 MIN_FIT_ITERATIONS = 20
-PART_SUFFIXES = (".stl", ".step", ".stp", ".3mf", ".dxf", ".svg")
+#: design.toml records the outline to 1 nm (holes.csv's precision).
+OUTLINE_DECIMALS = 6
+#: The command a manifest names when the Python API, not the command line, ran the job.
+DEFAULT_COMMAND = ("python", "-c", "aperture_fab.pipeline.design_job.run_design(...)")
 
 
 @dataclass(frozen=True)
@@ -92,19 +91,6 @@ class DesignResult:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
-def _prepare(config: Config, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Targets on the view grid (T, C, ny, nx) and on the display grid (T, C, H, W); one channel
-    when every target is grey."""
-    eye, display = config.scene.eye, config.scene.display
-    grey = all(is_grey(im) for im in images)
-    views, shown = [], []
-    for im in images:
-        im = im[:1] if grey else im
-        views.append(resample(im, eye.view_pixels))
-        shown.append(resample(im, display.pixels))
-    return np.stack(views), np.stack(shown)
-
-
 def design(
     images: Sequence[np.ndarray],
     config: Config,
@@ -126,9 +112,9 @@ def design(
         if not fabrication.force:
             check_plate(fabrication.process, scene.plate)  # refuse before optimizing
             if settings.quantize_share > 0:
-                made = made_sizes(scene.plate, fabrication.process, eye_distance_mm(scene))
+                made = made_sizes(scene.plate, fabrication.process, scene.mid_plane_distance_mm)
         bounds = design_bounds(scene, fabrication.process)
-    targets, shown = _prepare(config, images)
+    targets, shown = prepare_targets(list(images), scene.eye.view_pixels, scene.display.pixels)
     timings = {}
     start = time.perf_counter()
     result = optimize(scene, targets, shown, settings, bounds=bounds, made=made, state=state,
@@ -176,7 +162,7 @@ def evaluate(
     and a regular pinhole array showing elemental images."""
     scene = config.scene
     device = resolve_device(config.optimizer.device)
-    dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
+    dtype = torch_dtype(config.optimizer.precision)
     renderer = Renderer(scene, device=device, dtype=dtype)
     positions = range(len(scene.eye.positions_mm))
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
@@ -220,105 +206,127 @@ def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
     ])
 
 
-# -- files --------------------------------------------------------------------------------------
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write via a temporary file in the same folder and rename: never a truncated file."""
-    payload = data.encode() if isinstance(data, str) else data
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    # os.open with 0o666 honours the umask, unlike mkstemp's private 0o600.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def output_folder(out: Path) -> Path:
-    """The folder for all outputs: `out` itself, or its parent when `out` names a part file."""
-    folder = out.parent if out.suffix.lower() in PART_SUFFIXES else out
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"cannot create the output folder {folder}: {err.strerror}; choose "
-                         "another --out.") from err
-    if not os.access(folder, os.W_OK):
-        raise ValueError(f"the output folder {folder} is not writable; choose another --out.")
-    return folder
-
-
-def load_targets(paths: Sequence[Path]) -> tuple[list[np.ndarray], list[str]]:
-    """Read and decode target images; names are the file stems, made unique."""
-    images, names = [], []
-    for path in paths:
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise ValueError(f"target image {path} does not exist; check the path.") from None
-        except IsADirectoryError:
-            raise ValueError(f"target image {path} is a folder; give an image file.") from None
-        except OSError as err:
-            raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
-        images.append(decode_image(data, str(path)))
-        name = "".join(c if c.isalnum() or c in "-_" else "_" for c in path.stem) or "target"
-        while name in names:
-            name += "_"
-        names.append(name)
-    return images, names
-
-
-def _save_checkpoint(folder: Path, state: dict[str, Any], fingerprint: str) -> None:
-    import io
-
+def _save_checkpoint(folder: Path, state: dict[str, Any], inputs: dict[str, str]) -> None:
     buffer = io.BytesIO()
-    torch.save({"state": state, "fingerprint": fingerprint}, buffer)
+    torch.save({"state": state, "inputs": inputs}, buffer)
     write_atomic(folder / CHECKPOINT_NAME, buffer.getvalue())
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def input_digests(paths: Sequence[Path], config: Config, fabrication: FabricationSettings | None
+                  ) -> dict[str, str]:
+    """SHA-256 of every input of a design, by the name a message gives it: the resolved
+    config, the fabrication process (it bounds the optimizer) and each target image's bytes."""
+    digests = {"the config (--config file, preset and flags)": _sha256(to_toml(config).encode())}
+    if fabrication is not None:
+        digests["the fabrication process (--process, [process])"] = _sha256(
+            repr((fabrication.process, fabrication.force)).encode())
+    for number, path in enumerate(paths, start=1):
+        # Keyed by position, not path: a moved file with the same content may resume.
+        digests[f"target image {number}"] = _sha256(Path(path).read_bytes())
+    return digests
+
+
+def _resume_state(checkpoint: Path, inputs: dict[str, str], paths: Sequence[Path]
+                  ) -> dict[str, Any]:
+    """The optimizer state of a checkpoint made with exactly these inputs, else ValueError
+    naming the input that changed."""
+    if not checkpoint.exists():
+        raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
+    saved = torch.load(checkpoint, weights_only=False)
+    before = saved.get("inputs")
+    if before is None:
+        raise ValueError(f"--resume: {checkpoint} was made by an older aperture-fab that did "
+                         "not record its inputs' content; run without --resume to start again.")
+    changed = [name for name in {**before, **inputs} if before.get(name) != inputs.get(name)]
+    targets = {f"target image {n}": f" ({path})" for n, path in enumerate(paths, start=1)}
+    changed = [name + targets.get(name, "") for name in changed]
+    if changed:
+        raise ValueError(f"--resume: {', '.join(changed)} changed since {checkpoint} was saved "
+                         "(content compared by SHA-256); resuming would mix two designs. Give "
+                         "the inputs of the interrupted run, or run without --resume to start "
+                         "again.")
+    return dict(saved["state"])
+
+
+def recorded_config(config: Config, fabrication: FabricationSettings | None,
+                    formats: Sequence[FormatName] = (), outline_mm: tuple[float, float] | None
+                    = None) -> Config:
+    """The config as design.toml records it: the fabrication process (its name and every
+    field that differs from that preset), the fabrication settings as used (step: whether
+    STEP was written) and, under [part], the plate outline as built (a record, not read), so
+    that `--config design.toml` re-runs and `export`/`validate` re-make exactly this part."""
+    document = parse_toml(to_toml(config), "design.toml")
+    for table in ("process", "fabrication", "part"):
+        document.pop(table, None)  # a re-run's stale record never outlives it
+    if fabrication is not None:
+        process = fabrication.process
+        base = PROCESSES.get(process.name)
+        changed = {f.name: getattr(process, f.name) for f in dataclasses.fields(process)
+                   if f.name != "name"
+                   and (base is None or getattr(process, f.name) != getattr(base, f.name))}
+        document["process"] = {"name": process.name,
+                               **{k: list(v) if isinstance(v, tuple) else v
+                                  for k, v in changed.items()}}
+        document["fabrication"] = {"force": fabrication.force, "step": "step" in formats,
+                                   "alignment_cut": fabrication.alignment_cut,
+                                   "svg_polarity": fabrication.svg_polarity}
+    if outline_mm is not None:
+        document["part"] = {"outline_mm": [round(float(v), OUTLINE_DECIMALS)
+                                           for v in outline_mm]}
+    return resolve(None, document, file_source="design.toml")
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                fabrication: FabricationSettings | None = None,
                validation: ValidationSettings | None = None, resume: bool = False,
-               progress: bool = True) -> DesignResult:
-    """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint."""
+               progress: bool = True, command: Sequence[str] | None = None,
+               on_staged: Callable[[Path], None] | None = None) -> DesignResult:
+    """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint.
+
+    Every check and all the computation come before the folder is touched (only the
+    checkpoint is saved there while optimizing), so a refused run changes nothing. The outputs
+    are written into a staging folder and published as one set with manifest.json
+    (aperture_fab.io.manifest). command: recorded in the manifest (default: this function).
+    on_staged: a testing seam, called with the staging folder after each group of files is
+    staged (tests pause there to kill the process mid-export); None in normal use.
+    """
     folder = output_folder(out)
     images, names = load_targets(paths)
-    fingerprint = to_toml(config) + "\n".join(str(Path(p).resolve()) for p in paths)
-    state = None
+    inputs = input_digests(paths, config, fabrication)
     checkpoint = folder / CHECKPOINT_NAME
-    if resume:
-        if not checkpoint.exists():
-            raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
-        saved = torch.load(checkpoint, weights_only=False)
-        if saved["fingerprint"] != fingerprint:
-            raise ValueError(f"--resume: {checkpoint} was made with another config or other "
-                             "targets; run without --resume to start again.")
-        state = saved["state"]
-    write_atomic(folder / "design.toml", to_toml(config))
+    state = _resume_state(checkpoint, inputs, paths) if resume else None
     try:
         result = design(images, config, names=names, fabrication=fabrication, state=state,
                         progress=progress,
-                        on_checkpoint=lambda s: _save_checkpoint(folder, s, fingerprint))
+                        on_checkpoint=lambda s: _save_checkpoint(folder, s, inputs))
     except Interrupted as stop:
-        _save_checkpoint(folder, stop.state, fingerprint)
+        _save_checkpoint(folder, stop.state, inputs)
         raise
-    write_outputs(folder, result)
-    if result.part is not None and fabrication is not None:
-        start = time.perf_counter()
-        write_part(folder, result.part, fabrication, _formats(out, fabrication), progress)
-        result.timings_s["export_s"] = time.perf_counter() - start
-        if validation is not None:
-            checked = write_report(folder, result, fabrication, validation)
-            for variant in ("quantized", "as_built"):
-                per_target = [checked.metrics[variant][name] for name in result.names]
-                result.metrics[variant] = {key: [m[key] for m in per_target]
-                                           for key in ("mse", "psnr_db")}
-            write_summary(folder, result)  # design.json again, with the validated figures
+    formats = _formats(out, fabrication) if fabrication is not None else ()
+    outline = None if result.part is None else result.part.layout.outline_mm
+    result = dataclasses.replace(
+        result, config=recorded_config(config, fabrication, formats, outline))
+    staged = on_staged if on_staged is not None else (lambda _stage: None)
+    with staging(folder) as stage:
+        write_outputs(stage, result)
+        staged(stage)
+        if result.part is not None and fabrication is not None:
+            start = time.perf_counter()
+            write_part(stage, result.part, fabrication, formats, progress, on_written=staged)
+            result.timings_s["export_s"] = time.perf_counter() - start
+            if validation is not None:
+                checked = write_report(stage, result, fabrication, validation)
+                for variant in ("quantized", "as_built"):
+                    per_target = [checked.metrics[variant][name] for name in result.names]
+                    result.metrics[variant] = {key: [m[key] for m in per_target]
+                                               for key in ("mse", "psnr_db")}
+                write_summary(stage, result)  # design.json again, with the validated figures
+                staged(stage)
+        publish(stage, folder, command if command is not None else DEFAULT_COMMAND)
     checkpoint.unlink(missing_ok=True)
     return result
 
@@ -352,16 +360,17 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     return checked
 
 
-def _formats(out: Path, fabrication: FabricationSettings) -> tuple[PartFormat, ...]:
-    formats: list[PartFormat] = ["stl", "3mf", "csv", "dxf", "svg"]
-    if fabrication.step or out.suffix.lower() in (".step", ".stp"):
-        formats.append("step")
-    return tuple(formats)
+def _formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
+    """Every format; STEP (slow) only when asked for, by --step or an --out that names it."""
+    step = fabrication.step or out.suffix.lower() in PART_FORMATS["step"].suffixes
+    return tuple(name for name in PART_FORMATS if name != "step" or step)
 
 
 def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
-               formats: Sequence[PartFormat] = PART_FORMATS, progress: bool = True) -> list[Path]:
-    """Write the part's files atomically; a format that fails leaves no file behind."""
+               formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True,
+               on_written: Callable[[Path], None] | None = None) -> list[Path]:
+    """Write the part's files atomically; a format that fails leaves no file behind.
+    on_written: called with the folder after each format's file (run_design's testing seam)."""
     from tqdm import tqdm
 
     written = []
@@ -376,12 +385,14 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
             write_atomic(folder / name, data)
             written.append(folder / name)
         holes.close()
+        if on_written is not None:
+            on_written(folder)
     return written
 
 
 def write_outputs(folder: Path, result: DesignResult) -> None:
     """design.npz, display and view PNGs, loss curve, design.json."""
-    import io
+    from aperture_fab.validation.figures import figure_loss
 
     d = result.design
     buffer = io.BytesIO()
@@ -390,14 +401,15 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
                         built_displays=shown, loss_history=d.loss_history,
                         bounds=np.asarray(d.bounds), names=np.asarray(result.names))
     write_atomic(folder / "design.npz", buffer.getvalue())
+    write_atomic(folder / "design.toml", to_toml(result.config))
     for t, name in enumerate(result.names):
         write_atomic(folder / f"display_{name}.png", encode_png(shown[t]))
         write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
         for variant in ("initial", "optimized", "open", "regular_pinholes"):
             view = result.views[variant][t, 0]
-            scaled = view * _gain(view, result.targets[t])
+            scaled = view * gain(view, result.targets[t])
             write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
-    write_atomic(folder / "loss.png", _loss_plot(d.loss_history))
+    write_atomic(folder / "loss.png", figure_loss(d.loss_history))
     write_summary(folder, result)
 
 
@@ -419,12 +431,13 @@ def write_summary(folder: Path, result: DesignResult) -> None:
 
 
 def _part_summary(part: Part) -> dict[str, Any]:
-    from aperture_fab.fabrication.quantize import layout_stats
+    from aperture_fab.fabrication.layout import layout_stats
 
     stats = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
              for k, v in layout_stats(part.layout).items()}
     return {
         "layout": stats,
+        "outline_mm": [float(v) for v in part.layout.outline_mm],
         "violations": [
             {"rule": v.rule, "cell": v.cell, "value_mm": v.value_mm, "limit_mm": v.limit_mm,
              "resolution": v.resolution}
@@ -433,29 +446,3 @@ def _part_summary(part: Part) -> dict[str, Any]:
         "mesh": {"watertight": part.report.watertight, "genus": part.report.genus,
                  "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count},
     }
-
-
-def _gain(view: np.ndarray, target: np.ndarray) -> float:
-    return float((view * target).sum() / max((view * view).sum(), 1e-20))
-
-
-def _loss_plot(history: np.ndarray) -> bytes:
-    import io
-
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as err:  # pragma: no cover - matplotlib is a dependency
-        raise ImportError("the loss plot needs matplotlib: pip install matplotlib") from err
-    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=100)
-    ax.semilogy(np.arange(1, len(history) + 1), history)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss (MSE after gain)")
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    plt.close(fig)
-    return buffer.getvalue()

@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 
 from aperture_fab.config.config import Config, to_dict
+from aperture_fab.fabrication.layout import layout_stats
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
-from aperture_fab.fabrication.quantize import layout_stats
+from aperture_fab.metrics import gain_psnr_db
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
@@ -77,6 +78,7 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
         "smallest_web_mm": stats["smallest_web_mm"],
         "smallest_edge_web_mm": stats["smallest_edge_web_mm"],
         "open_area_fraction": stats["open_area_fraction"],
+        "outline_mm": [float(v) for v in part.layout.outline_mm],
         "violations": [
             {"rule": v.rule, "cell": None if v.cell is None else list(v.cell),
              "value_mm": v.value_mm, "limit_mm": v.limit_mm, "resolution": v.resolution}
@@ -156,15 +158,6 @@ def _ordered(names: Any) -> list[str]:
             + [v for v in names if v not in EYE_VARIANTS])
 
 
-def _gain_psnr(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """PSNR after the least-squares gain (T, k) of views (T, k, C, ny, nx) against targets."""
-    flat = views.reshape(*views.shape[:2], -1)
-    goal = targets.reshape(targets.shape[0], 1, -1)
-    gain = (flat * goal).sum(-1, keepdims=True) / ((flat * flat).sum(-1, keepdims=True) + 1e-20)
-    mse = ((gain * flat - goal) ** 2).mean(-1)
-    return np.asarray(10 * np.log10(1 / np.maximum(mse, 1e-20)))
-
-
 def eye_distribution_block(eyes: EyeQuality, names: tuple[str, ...], targets: np.ndarray
                            ) -> dict[str, Any]:
     """report.json's "eye_distribution" block (aperture_fab.validation.report, EYE_DISTRIBUTION):
@@ -190,7 +183,7 @@ def eye_distribution_block(eyes: EyeQuality, names: tuple[str, ...], targets: np
                   "psnr_db": {v: eyes.focus_psnr_db[v] for v in _ordered(eyes.focus_psnr_db)}},
         "thumbnails": {
             "variant": next(iter(eyes.psnr_db)), "offsets_mm": eyes.thumbnail_offsets_mm,
-            "psnr_db": _gain_psnr(eyes.thumbnails, targets),
+            "psnr_db": gain_psnr_db(eyes.thumbnails, targets),
         },
     }
 
@@ -217,5 +210,5 @@ def eye_figures(eyes: EyeQuality, names: tuple[str, ...], targets: np.ndarray
             xlabel=label, shaded=shaded, nominal=nominal, names=names)
     figures["eye_thumbnails"] = figure_thumbnails(
         targets, eyes.thumbnails, eyes.thumbnail_offsets_mm,
-        _gain_psnr(eyes.thumbnails, targets), names)
+        gain_psnr_db(eyes.thumbnails, targets), names)
     return figures

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from aperture_fab.metrics import gain_psnr_db, gains
 from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.optics.eyes import EyeDistribution, EyeStates, distribution_of, percentiles
 from aperture_fab.optics.model import Renderer, render_open_states
@@ -130,15 +131,6 @@ def _views(renderer: Renderer, variant: Variant, targets: np.ndarray, states: Ey
     return np.stack(out)
 
 
-def _psnr(views: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """PSNR after gain (T, S) of views (T, S, C, ny, nx) against targets (T, C, ny, nx)."""
-    flat = views.reshape(*views.shape[:2], -1)
-    goal = targets.reshape(targets.shape[0], 1, -1)
-    gain = (flat * goal).sum(-1, keepdims=True) / ((flat * flat).sum(-1, keepdims=True) + 1e-20)
-    mse = ((gain * flat - goal) ** 2).mean(-1)
-    return 10 * np.log10(1 / np.maximum(mse, 1e-20))
-
-
 def _states(offset_mm: np.ndarray, pupil_mm: np.ndarray | float,
             focus_diopters: np.ndarray | float) -> EyeStates:
     """Equally weighted states, the arguments broadcast against each other."""
@@ -187,23 +179,22 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
     thumbnails = np.zeros(0)
     for index, (name, variant) in enumerate(variants.items()):
         views = _views(renderer, variant, targets, states)
-        psnr[name] = _psnr(views, targets)
+        psnr[name] = gain_psnr_db(views, targets)
         ssim[name] = np.array([[view_metrics(v, targets[t], 1.0)["ssim"] for v in views[t]]
                                for t in range(len(targets))])
-        nominal_psnr[name] = _psnr(_views(renderer, variant, targets, nominal), targets)[:, 0]
-        pupil_psnr[name] = _psnr(_views(renderer, variant, targets, pupil_states), targets)
+        nominal_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, nominal),
+                                          targets)[:, 0]
+        pupil_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, pupil_states), targets)
         if index > 0:
             continue  # the map, focus sweep and thumbnails are the part's alone
-        focus_psnr[name] = _psnr(_views(renderer, variant, targets, focus_states), targets)
+        focus_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, focus_states), targets)
         if variant.open_fraction is not None:
             full = np.full((len(targets), map_size * map_size), np.nan)
-            full[:, inside.reshape(-1)] = _psnr(_views(renderer, variant, targets, grid), targets)
+            full[:, inside.reshape(-1)] = gain_psnr_db(_views(renderer, variant, targets, grid),
+                                                       targets)
             map_psnr[name] = full.reshape(len(targets), map_size, map_size)
         thumbs = _views(renderer, variant, targets, thumb_states)
-        flat = thumbs.reshape(*thumbs.shape[:2], -1)
-        goal = targets.reshape(len(targets), 1, -1)
-        gain = (flat * goal).sum(-1) / ((flat * flat).sum(-1) + 1e-20)
-        thumbnails = np.clip(thumbs * gain[..., None, None, None], 0, 1)
+        thumbnails = np.clip(thumbs * gains(thumbs, targets)[..., None, None, None], 0, 1)
     offsets = grid_offsets(distribution, map_size)
     return EyeQuality(distribution, states, psnr, ssim, nominal_psnr, offsets, inside, map_psnr,
                       pupils, pupil_psnr, focus, focus_psnr, thumb_offsets, thumbnails)

@@ -60,10 +60,12 @@ from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import metrics as view_metrics
+from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
+from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
-from aperture_fab.optimize.optimizer import gain_mse, psnr_db, resolve_device
+from aperture_fab.optimize.optimizer import gain_mse
 from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
 
 __all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
@@ -203,7 +205,7 @@ def validate(
     """
     scene = config.scene
     device = resolve_device(config.optimizer.device)
-    dtype = torch.float64 if config.optimizer.precision == "float64" else torch.float32
+    dtype = torch_dtype(config.optimizer.precision)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     renderer = Renderer(scene, device=device, dtype=dtype)
@@ -317,7 +319,7 @@ def _tilt_offsets_mm(scene: Scene, eye_mm: tuple[float, float], tilt_rad: float,
     nx, ny = -math.sin(axis_rad), math.cos(axis_rad)  # in-plane normal to the tilt axis
     d = x * nx + y * ny
     rise = math.sin(tilt_rad) * d
-    s_h = scene.eye.eye_relief_mm + plate.thickness_mm / 2
+    s_h = scene.mid_plane_distance_mm
     low, high = -plate.gap_mm, scene.eye.eye_relief_mm
     if rise.min() <= low or rise.max() >= high:
         raise ValueError(

@@ -1,0 +1,29 @@
+"""Where and in what precision tensors live: the config's device and precision names as torch
+objects, looked up in one place."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+__all__ = ["Precision", "resolve_device", "torch_dtype"]
+
+Precision = Literal["float32", "float64"]
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """"auto" (CUDA when present, else the CPU), "cpu", "cuda" or "cuda:N"."""
+    if isinstance(name, torch.device):
+        return name
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device = {name!r} was asked for but CUDA is not available here; "
+                         "use --device cpu or auto.")
+    return torch.device(name)
+
+
+def torch_dtype(precision: Precision) -> torch.dtype:
+    """The torch dtype of optimizer.precision."""
+    return torch.float64 if precision == "float64" else torch.float32

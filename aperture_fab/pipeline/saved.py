@@ -1,0 +1,238 @@
+"""Reading what a design job wrote: its config, its design.npz and a part (design.npz, a hole
+table or an STL), each checked against the config, with errors that name the file and the fix.
+
+A part may have been edited by hand: a layout that breaks the process's rules is read anyway,
+with the broken rules listed (`load_part`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from aperture_fab.config.config import Config, parse_toml, resolve
+from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.mesh import PlateMesh, check_mesh
+from aperture_fab.fabrication.part import FabricationSettings, Part, build_part, make_part
+from aperture_fab.fabrication.process import Process
+from aperture_fab.fabrication.quantize import quantize
+from aperture_fab.fabrication.rules import layout_violations
+from aperture_fab.io.manifest import check_folder
+from aperture_fab.optics.scene import Scene
+
+__all__ = [
+    "CONFIG_NAME",
+    "DESIGN_NAME",
+    "PartKind",
+    "SavedDesign",
+    "check_design",
+    "check_sources",
+    "design_beside",
+    "design_display",
+    "load_part",
+    "part_kind",
+    "read_config",
+    "read_design",
+]
+
+PartKind = Literal["design", "holes", "mesh"]
+PART_KINDS: dict[str, PartKind] = {".npz": "design", ".csv": "holes", ".stl": "mesh"}
+DESIGN_NAME = "design.npz"
+CONFIG_NAME = "design.toml"
+#: A mesh's thickness may differ from the config's by this share (float32 STL rounding).
+THICKNESS_RTOL = 1e-4
+
+
+@dataclass(frozen=True)
+class SavedDesign:
+    """A design.npz written by `aperture-fab design`.
+
+    path: where it was read.
+    open_fraction: (rows, cols) float64, the design before quantization.
+    displays: (T, C, H, W) float64 linear, the display content optimized with the plate.
+    built_displays: (T, C, H, W) float64, the content re-fitted to the part, or None.
+    loss_history: (N,) float64.
+    names: the design's target names.
+    """
+
+    path: Path
+    open_fraction: np.ndarray
+    displays: np.ndarray
+    built_displays: np.ndarray | None
+    loss_history: np.ndarray
+    names: tuple[str, ...]
+
+
+def part_kind(path: Path) -> PartKind:
+    """The kind of part a file holds, from its suffix; ValueError when it is none of them."""
+    kind = PART_KINDS.get(path.suffix.lower())
+    if kind is None:
+        raise ValueError(f"part {path}: {path.suffix or 'no suffix'} is not a part file; give a "
+                         "design.npz, a holes.csv or an STL (.stl).")
+    if not path.is_file():
+        raise ValueError(f"part {path} does not exist or is not a file; check the path.")
+    return kind
+
+
+def read_config(path: Path) -> Config:
+    """The resolved config of a design.toml (its own preset key, no flags)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ValueError(f"config {path} does not exist; give the design's design.toml with "
+                         "--config.") from None
+    except OSError as err:
+        raise ValueError(f"config {path}: cannot read it ({err.strerror}).") from err
+    return resolve(None, parse_toml(text, str(path)), file_source=str(path))
+
+
+def read_design(path: Path) -> SavedDesign:
+    """Read a design.npz; ValueError naming the file when it is not one."""
+    try:
+        with np.load(path) as data:
+            open_fraction = np.asarray(data["open_fraction"], dtype=np.float64)
+            displays = np.asarray(data["displays"], dtype=np.float64)
+            built = (np.asarray(data["built_displays"], dtype=np.float64)
+                     if "built_displays" in data.files else None)
+            history = (np.asarray(data["loss_history"], dtype=np.float64).ravel()
+                       if "loss_history" in data.files else np.zeros(0))
+            names = (tuple(str(n) for n in data["names"]) if "names" in data.files
+                     else tuple(f"target{i}" for i in range(len(displays))))
+    except (OSError, KeyError, ValueError) as err:
+        raise ValueError(f"{path}: not a design.npz written by `aperture-fab design` ({err}); "
+                         "give the design folder's design.npz.") from err
+    if open_fraction.ndim != 2 or displays.ndim != 4:
+        raise ValueError(f"{path}: open_fraction has shape {open_fraction.shape} and displays "
+                         f"{displays.shape}; expected (rows, cols) and (T, C, H, W).")
+    return SavedDesign(path, open_fraction, displays, built, history, names)
+
+
+def check_design(design: SavedDesign, config: Config, config_path: Path) -> None:
+    """The design must belong to the config's plate and display."""
+    plate, display = config.scene.plate, config.scene.display
+    cells = (plate.cells[1], plate.cells[0])
+    pixels = (display.pixels[1], display.pixels[0])
+    if design.open_fraction.shape != cells or design.displays.shape[2:] != pixels:
+        raise ValueError(
+            f"{design.path} has {design.open_fraction.shape} cells and {design.displays.shape[2:]}"
+            f" display pixels (rows, cols) but the config {config_path} has {cells} and {pixels};"
+            " give the config the design was made with (its design.toml).")
+
+
+def _converge_mm(scene: Scene) -> tuple[float, float, float] | None:
+    """The point chief-ray holes aim at (ex, ey, D), as make_part places it; None if straight."""
+    if scene.plate.hole_axis != "chief_ray":
+        return None
+    ex, ey = scene.eye.positions_mm[0]
+    return (float(ex), float(ey), scene.mid_plane_distance_mm)
+
+
+def _blank_layout(scene: Scene, process: Process) -> HoleLayout:
+    """A layout without holes that has the outline and hole axes make_part would give."""
+    converge = _converge_mm(scene)
+    cells = (scene.plate.cells[1], scene.plate.cells[0])
+    return quantize(np.zeros(cells), scene.plate, process,
+                    tilt_target_mm=scene.eye.positions_mm[0],
+                    eye_distance_mm=None if converge is None else converge[2], force=True)
+
+
+def _layout_from_mesh(mesh: PlateMesh, path: Path, scene: Scene, config_path: Path
+                      ) -> HoleLayout:
+    from aperture_fab.fabrication.mesh_holes import hole_layout_from_mesh
+
+    plate = scene.plate
+    try:
+        try:
+            layout = hole_layout_from_mesh(mesh, plate.pitch_mm, plate.cells,
+                                           converge_mm=_converge_mm(scene))
+        except ValueError:
+            # Hand-tilted holes no longer aim at the eye point: keep the axes as measured.
+            layout = hole_layout_from_mesh(mesh, plate.pitch_mm, plate.cells)
+    except ValueError as err:
+        raise ValueError(
+            f"{path} is not a plate of the config's grid ({plate.cells[0]} x {plate.cells[1]} "
+            f"cells of {plate.pitch_mm[0]:g} x {plate.pitch_mm[1]:g} mm, from {config_path}): "
+            f"{err} Give the config the part was made with (--config).") from err
+    t = plate.thickness_mm
+    if not math.isclose(layout.thickness_mm, t, rel_tol=THICKNESS_RTOL):
+        raise ValueError(
+            f"{path} is {layout.thickness_mm:.6g} mm thick but the config {config_path} has "
+            f"plate.thickness_mm = {t:g}; set plate.thickness_mm = {layout.thickness_mm:.6g} in "
+            "the config, or give the config the part was made with.")
+    return layout
+
+
+def check_sources(config_path: Path, part: Path, kind: PartKind) -> None:
+    """Refuse a design folder (the config's, the part's) whose files do not match its
+    manifest.json: a stale or partial set (aperture_fab.io.manifest.check_folder). A hole table
+    or mesh given as the part may differ from its listing: it may have been edited by hand."""
+    edited_ok = {part.name} if kind in ("holes", "mesh") else set()
+    folders = {config_path.parent.resolve(): set(), part.parent.resolve(): edited_ok}
+    if config_path.parent.resolve() == part.parent.resolve():
+        folders = {part.parent.resolve(): edited_ok}
+    for folder, names in folders.items():
+        check_folder(folder, edited_ok=names)
+
+
+def load_part(path: Path, kind: PartKind, config: Config, fabrication: FabricationSettings,
+              config_path: Path) -> Part:
+    """The part a file holds, for the config's scene and the process; its folder and the
+    config's are first checked against their manifests (check_sources).
+
+    design: quantized and built by make_part (its violations are those quantize resolved).
+    holes: read_holes_csv and built as given; mesh: read_stl, the holes recovered from the mesh
+    and the mesh itself kept. For both, layout.violations lists the process rules the holes
+    break (layout_violations), none of them resolved.
+    """
+    from aperture_fab.io.formats import read_holes_csv, read_stl
+
+    check_sources(config_path, path, kind)
+    scene, process = config.scene, fabrication.process
+    if kind == "design":
+        design = read_design(path)
+        check_design(design, config, config_path)
+        return make_part(design.open_fraction, scene, fabrication)
+    if kind == "holes":
+        blank = _blank_layout(scene, process)
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ValueError(f"{path}: cannot read the hole table ({err}).") from err
+        layout = read_holes_csv(text, scene.plate, outline_mm=blank.outline_mm,
+                                converge_mm=blank.converge_mm, source=str(path))
+        try:
+            part = build_part(layout, fabrication, min_web_mm=0.0)
+        except ValueError as err:
+            raise ValueError(f"{path}: the holes cannot be built into a plate ({err}); keep "
+                             "every hole inside its cell.") from err
+    else:
+        mesh = read_stl(path.read_bytes())
+        layout = _layout_from_mesh(mesh, path, scene, config_path)
+        part = Part(layout, mesh, check_mesh(mesh), 0.0)
+    broken = layout_violations(part.layout, scene.plate, process)
+    return replace(part, layout=replace(part.layout, violations=broken))
+
+
+def design_beside(config_path: Path, part: Path, kind: PartKind) -> SavedDesign | None:
+    """The design a part belongs to: the part itself when it is a design.npz, else the
+    design.npz beside its config, or None."""
+    if kind == "design":
+        return read_design(part)
+    path = config_path.parent / DESIGN_NAME
+    return read_design(path) if path.is_file() else None
+
+
+def design_display(design: SavedDesign, target_index: int) -> np.ndarray:
+    """The display content (C, H, W) a design shows for target number target_index: its
+    content fitted to the part when it has one."""
+    shown = design.built_displays if design.built_displays is not None else design.displays
+    if not (isinstance(target_index, int) and 0 <= target_index < len(shown)):
+        raise ValueError(
+            f"--target-index {target_index} is out of range; {design.path} has "
+            f"{len(shown)} display(s) ({', '.join(design.names)}): allowed 0 to "
+            f"{len(shown) - 1}.")
+    return np.asarray(shown[target_index])

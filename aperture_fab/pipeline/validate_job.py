@@ -1,0 +1,159 @@
+"""The `aperture-fab validate` job: an existing part (a design.npz, a hole table or an STL,
+edited or not) judged for a config and its targets, with the report written beside it.
+
+The display is software and follows the plate: by default its content is re-fitted to the part
+(as `design` does for the part it makes), starting from the design's content when a design.npz
+lies beside the config.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from aperture_fab.config.config import Config
+from aperture_fab.fabrication.part import Part, fabrication_settings
+from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.images import encode_png, prepare_targets
+from aperture_fab.optimize.optimizer import fit_display
+from aperture_fab.pipeline.design_job import FIT_SHARE, MIN_FIT_ITERATIONS
+from aperture_fab.pipeline.saved import (
+    CONFIG_NAME,
+    DESIGN_NAME,
+    PartKind,
+    SavedDesign,
+    check_design,
+    design_beside,
+    load_part,
+    part_kind,
+    read_config,
+)
+from aperture_fab.validation.validate import Validation, layout_fractions, validate
+
+__all__ = ["DisplaySource", "RecheckResult", "run_validate"]
+
+#: Display content: fitted to the part, kept from the design, or the targets themselves.
+DisplaySource = Literal["fitted", "kept", "targets"]
+
+
+@dataclass(frozen=True)
+class RecheckResult:
+    """What `run_validate` did.
+
+    folder: where report.json, report.html, views.npz and display_<target>.png were written.
+    kind: the part's kind. names: (T,) target names. part: the part checked (layout, mesh).
+    validation: views and metrics. display_source: where the display content came from.
+    """
+
+    folder: Path
+    kind: PartKind
+    names: tuple[str, ...]
+    part: Part
+    validation: Validation
+    display_source: DisplaySource
+
+
+def _display_content(config: Config, targets: np.ndarray, on_display: np.ndarray,
+                     as_built: np.ndarray, design: SavedDesign | None, keep: bool,
+                     progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, DisplaySource]:
+    """(designed, shown, fit loss history, source): the content the design was optimized with
+    and the content shown with the part (both (T, C, H, W))."""
+    settings = config.optimizer
+    if settings.display == "target":
+        return on_display, on_display, np.zeros(0), "targets"
+    if design is None:
+        if keep:
+            raise ValueError(f"--keep-display needs the design's display content, but there is "
+                             f"no {DESIGN_NAME} beside the config; drop --keep-display to fit "
+                             "the display to the part.")
+        designed = start = on_display
+    else:
+        designed = design.displays
+        start = design.built_displays if design.built_displays is not None else design.displays
+    if keep:
+        return designed, start, np.zeros(0), "kept"
+    iterations = max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE)
+    fitted, history = fit_display(config.scene, targets, as_built, start, settings, iterations,
+                                  progress=progress)
+    return designed, fitted, history, "fitted"
+
+
+def run_validate(
+    part: Path,
+    targets: Sequence[Path],
+    *,
+    config_path: Path | None = None,
+    out: Path | None = None,
+    process: str | None = None,
+    keep_display: bool = False,
+    tolerance_samples: int | None = None,
+    mesh_samples: int | None = None,
+    progress: bool = False,
+) -> RecheckResult:
+    """The `aperture-fab validate` job: validate a part (design.npz, holes.csv or STL) for the
+    config and targets; write report.json, report.html, views.npz and display_<target>.png
+    into `out` (default: validate_<part stem> beside the part).
+
+    config_path: default design.toml beside the part. process: overrides the config's
+    [process] name. keep_display: show design.npz's display content unchanged instead of
+    re-fitting it to the part. tolerance_samples, mesh_samples: override [validation].
+    """
+    from aperture_fab.validation.evidence import assemble
+    from aperture_fab.validation.report import report_json
+    from aperture_fab.validation.validate import validation_settings
+
+    start = time.perf_counter()
+    kind = part_kind(part)
+    config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
+    config = read_config(config_path)
+    fabrication = fabrication_settings(config.extra, {"process": process})
+    settings = validation_settings(config.extra, {"tolerance_samples": tolerance_samples,
+                                                  "mesh_samples": mesh_samples})
+    images, names = load_targets(targets)
+    design = design_beside(config_path, part, kind)
+    if design is not None:
+        check_design(design, config, config_path)
+        if len(design.displays) != len(images):
+            raise ValueError(
+                f"{design.path} was designed for {len(design.displays)} target(s) "
+                f"({', '.join(design.names)}) but {len(images)} were given; give "
+                f"{len(design.displays)} target(s) in the design's order.")
+    loaded = load_part(part, kind, config, fabrication, config_path)
+    folder = output_folder(out if out is not None else part.parent / f"validate_{part.stem}")
+    view_targets, on_display = prepare_targets(
+        images, config.scene.eye.view_pixels, config.scene.display.pixels,
+        None if design is None else design.displays.shape[1])
+    as_built = layout_fractions(loaded.layout, fabrication.process.radius_bias_mm)
+    timings = {"load_s": time.perf_counter() - start}
+    start = time.perf_counter()
+    designed, shown, fit_history, source = _display_content(
+        config, view_targets, on_display, as_built, design, keep_display, progress)
+    timings["fit_display_s"] = time.perf_counter() - start
+    open_fraction = (design.open_fraction if design is not None
+                     else layout_fractions(loaded.layout))
+    checked = validate(config, view_targets, designed, open_fraction, loaded,
+                       fabrication.process, tuple(names), settings, loaded.mesh,
+                       built_displays=shown)
+    history = (design.loss_history if design is not None and design.loss_history.size
+               else fit_history)
+    if history.size == 0:  # nothing was optimized here: the loss of the part as it is
+        history = np.array([checked.metrics["as_built"][names[0]]["mse"]])
+    start = time.perf_counter()
+    evidence = assemble(config, tuple(names), view_targets, shown, history, loaded,
+                        fabrication.process, checked, timings)
+    report = dict(evidence.report)
+    report["timings_s"] = {**report["timings_s"], "report_s": time.perf_counter() - start}
+    report["checked_part"] = {"path": str(part), "kind": kind, "config": str(config_path),
+                              "display": source,
+                              "design": None if design is None else str(design.path)}
+    write_atomic(folder / "views.npz", evidence.views_npz)
+    write_atomic(folder / "report.html", evidence.html)
+    write_atomic(folder / "report.json", report_json(report))
+    for name, content in zip(names, shown, strict=True):
+        write_atomic(folder / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
+    return RecheckResult(folder, kind, tuple(names), loaded, checked, source)
