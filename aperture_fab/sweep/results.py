@@ -45,6 +45,8 @@ FIGURE_HELP: dict[str, str] = {
 BASE_COLUMNS = ("id", "status")
 TAIL_COLUMNS = ("error", "report")
 PLOT_INCHES = (6.4, 4.4)
+#: Characters of a failed point's error shown in the page's table.
+ERROR_CHARS = 120
 
 
 def _mean(values: Sequence[Any] | None) -> float | None:
@@ -221,6 +223,10 @@ def _html(spec: SweepSpec, rows: list[dict[str, Any]], columns: list[str], svg: 
                                              else str(value))
             if c == "id":
                 text = f'<a href="{esc(r["report"])}">{esc(text)}</a>'
+            elif c == "error" and len(text) > ERROR_CHARS:  # in full: hover, or the CSV
+                short = esc(text[:ERROR_CHARS])
+                cells.append(f'<td class="err" title="{esc(text)}">{short}...</td>')
+                continue
             elif c != "report":
                 text = esc(text)
             else:
@@ -233,14 +239,14 @@ def _html(spec: SweepSpec, rows: list[dict[str, Any]], columns: list[str], svg: 
 <html lang="en"><head><meta charset="utf-8"><title>aperture-fab sweep</title>
 <style>body{{font-family:sans-serif;margin:1.5em;max-width:100em}}
 table{{border-collapse:collapse;font-size:0.85em}}td,th{{border:1px solid #ccc;padding:2px 6px}}
-tr.front{{background:#fde8e8}}svg{{max-width:100%;height:auto}}</style></head><body>
+tr.front{{background:#fde8e8}}td.err{{min-width:28em;font-size:0.85em}}svg{{max-width:100%;height:auto}}</style></head><body>
 <h1>Sweep {esc(spec.source.name)}</h1>
 <p>{len(rows)} points ({ok} ok, {failed} failed, {len(rows) - ok - failed} not run);
 mode {esc(spec.mode)}; objectives: {esc(objectives)}; {len(front_ids)} point(s) on the Pareto
 front (highlighted). Click a point in the plot or an id in the table for its report.</p>
 {extra}{svg}
-<h2>Points</h2><table><tr>{head.replace("<th>report</th>", "")}</tr>
-{chr(10).join(body)}</table>
+<h2>Points</h2><div style="overflow-x:auto"><table><tr>{head.replace("<th>report</th>", "")}</tr>
+{chr(10).join(body)}</table></div>
 <h2>Figures</h2><ul>{legend}</ul></body></html>
 """
 
