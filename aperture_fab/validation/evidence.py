@@ -37,14 +37,12 @@ from aperture_fab.validation.report import (
 from aperture_fab.validation.report_html import report_html, verdicts
 from aperture_fab.validation.robustness import PERCENTILES, EyeQuality
 from aperture_fab.validation.validate import Validation
+from aperture_fab.validation.variants import SHOWN_VARIANTS
 
 __all__ = ["Evidence", "assemble", "eye_distribution_block", "eye_figures"]
 
 #: Wavelength for the diffraction verdict (green, where the eye is most sensitive).
 VERDICT_WAVELENGTH_MM = 530e-6
-#: Variants shown beside the target in the main figure, in order.
-SHOWN_VARIANTS = ("as_built", "optimized", "open", "regular_pinholes", "random",
-                  "as_built_mesh", "as_built_diffraction")
 
 
 @dataclass(frozen=True)

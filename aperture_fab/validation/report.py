@@ -68,6 +68,7 @@ import numpy as np
 from aperture_fab.metrics import METRIC_KEYS, summarize
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.scene import Scene
+from aperture_fab.validation.variants import EYE_VARIANTS, VARIANTS
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -91,28 +92,10 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 2
-REPORT_VARIANTS: tuple[str, ...] = (
-    "open", "regular_pinholes", "random", "optimized", "quantized", "as_built", "as_built_mesh",
-    "as_built_diffraction",
-)
-#: What each variant is, in words, for tables and verdicts.
-VARIANT_LABELS: dict[str, str] = {
-    "open": "open display (no plate)",
-    "regular_pinholes": "regular pinhole array",
-    "random": "random mask (the dissertation's start)",
-    "optimized": "optimized design",
-    "quantized": "after quantization",
-    "as_built": "as built (real holes, real thickness)",
-    "as_built_mesh": "as built, traced through the written mesh",
-    "as_built_diffraction": "as built, with diffraction",
-}
-#: Variants judged over the eye distribution, in the order tables list them: the part first.
-EYE_VARIANTS: tuple[str, ...] = ("as_built", "optimized", "open", "regular_pinholes")
-#: Short names of those variants for the eye-distribution table, figures and terminal.
-EYE_VARIANT_LABELS: dict[str, str] = {
-    "as_built": "as built", "optimized": "optimized", "open": "open display",
-    "regular_pinholes": "regular pinholes",
-}
+# Views of the registry (aperture_fab.validation.variants) in the forms the report uses.
+REPORT_VARIANTS: tuple[str, ...] = tuple(VARIANTS)
+VARIANT_LABELS: dict[str, str] = {name: v.label for name, v in VARIANTS.items()}
+EYE_VARIANT_LABELS: dict[str, str] = {name: str(VARIANTS[name].short) for name in EYE_VARIANTS}
 #: The topic of the leading verdict: the part over the eye distribution.
 EYE_TOPIC = "eye distribution"
 #: Verdict levels: fail (red), warn (amber), pass (green), info (a finding, no judgement).

@@ -25,6 +25,7 @@ from aperture_fab.validation.report import (
     json_ready,
     validate_report,
 )
+from aperture_fab.validation.variants import EYE_BASELINES
 
 __all__ = ["SECTION_TITLES", "CSP", "EYE_MARGIN_DB", "verdicts", "eye_verdict", "report_html"]
 
@@ -54,10 +55,6 @@ HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
 #: The part's 10th-percentile PSNR within this many dB above a baseline's is a warning (amber);
 #: below it, a failure (red).
 EYE_MARGIN_DB = 1.0
-#: The baselines the part must beat over the eye distribution, and their names in words.
-EYE_BASELINES: tuple[tuple[str, str], ...] = (
-    ("open", "the open display"), ("regular_pinholes", "the regular pinhole array"),
-)
 #: What the page and the terminal call each level.
 LEVEL_WORDS = {"fail": "FAIL", "warn": "WARN", "pass": "PASS", "info": "NOTE"}
 NOT_JUDGED = ("Not judged over the eye distribution (validation.eye_states = 0): every figure "

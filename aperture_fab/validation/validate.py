@@ -67,6 +67,7 @@ from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
 from aperture_fab.optimize.optimizer import gain_mse
 from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
+from aperture_fab.validation.variants import VARIANTS
 
 __all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
            "validate"]
@@ -298,11 +299,9 @@ def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,
             "designed": [float(render_open(scene, d).mean()) for d in designed],
             "target": [float(render_open(scene, d).mean()) for d in on_display],
         }
-    source = {"open": "target", "random": "target", "regular_pinholes": "target",
-              "optimized": "designed"}
     out: dict[str, dict[str, dict[str, float]]] = {}
     for variant, v in views.items():
-        reference = levels[source.get(variant, "shown")]
+        reference = levels[VARIANTS[variant].display]
         out[variant] = {
             name: view_metrics(v[t, 0], targets[t], reference[t]) for t, name in enumerate(names)
         }
