@@ -239,7 +239,7 @@ def validate(
 
     mesh_stderr = None
     if settings.mesh_samples != 0:
-        from aperture_fab.optics.retrace import trace_mesh_view
+        from aperture_fab.validation.retrace import trace_mesh_view
 
         start = time.perf_counter()
         traced = [trace_mesh_view(mesh if mesh is not None else part.mesh, scene,
