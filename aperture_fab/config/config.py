@@ -66,7 +66,8 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
             "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
             "gaze_deg", "rotation_mm"),
     "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
-                  "display", "efficiency_weight", "plateau_patience", "plateau_tolerance", "seed",
+                  "display", "efficiency_weight", "min_efficiency", "plateau_patience",
+                  "plateau_tolerance", "seed",
                   "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
                   "tail_share", "tracking"),
 }
@@ -81,7 +82,8 @@ _RANGE_NOMINALS = {"eye.pupil_range_mm": "eye.pupil_mm",
 _FLOATS = {
     "display.width_mm", "display.height_mm", "plate.gap_mm", "plate.thickness_mm",
     "eye.pupil_mm", "eye.eye_relief_mm", "optimizer.learning_rate", "optimizer.momentum",
-    "optimizer.efficiency_weight", "optimizer.plateau_tolerance", "optimizer.quantize_share",
+    "optimizer.efficiency_weight", "optimizer.min_efficiency", "optimizer.plateau_tolerance",
+    "optimizer.quantize_share",
     "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
 }
 _WHOLES = {

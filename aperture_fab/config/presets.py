@@ -110,6 +110,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "init": "pinholes",
             "display": "optimized",
             "efficiency_weight": 0.0,
+            "min_efficiency": 0.0,
             "plateau_patience": 60,
             "plateau_tolerance": 1e-4,
             "seed": 0,
@@ -155,6 +156,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "init": "random",
             "display": "target",
             "efficiency_weight": 0.0,
+            "min_efficiency": 0.0,
             "plateau_patience": 0,  # the dissertation always ran all 300 epochs
             "plateau_tolerance": 1e-4,
             "seed": 0,

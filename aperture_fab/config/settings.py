@@ -48,6 +48,9 @@ class OptimizerSettings:
         mask, the dissertation's start) or "uniform" (every hole half open).
     display: "optimized" (display content optimized with the plate) or "target" (shown as is).
     efficiency_weight: weight of the light-efficiency term (0 ignores the light level).
+    min_efficiency: a brightness floor: the light efficiency (view mean / the open display's)
+        each eye state must keep, enforced by a penalty that dominates the image loss below it;
+        0 sets no floor.
     plateau_patience: stop when the loss has not improved by plateau_tolerance (relative) for
         this many iterations; 0 never stops early.
     plateau_tolerance: relative improvement that counts as progress.
@@ -77,6 +80,7 @@ class OptimizerSettings:
     init: Init = "pinholes"
     display: DisplayMode = "optimized"
     efficiency_weight: float = 0.0
+    min_efficiency: float = 0.0
     plateau_patience: int = 60
     plateau_tolerance: float = 1e-4
     seed: int = 0
@@ -121,6 +125,17 @@ class OptimizerSettings:
             raise ValueError(
                 f"optimizer.efficiency_weight = {self.efficiency_weight!r} must be >= 0 "
                 "(0 ignores the light level)."
+            )
+        if self.min_efficiency > 0 and self.tracking == "tracked":
+            raise ValueError(
+                "optimizer.min_efficiency holds an untracked design's brightness; a tracked "
+                "design's display content changes per eye state, so the floor is not applied to "
+                'it. Use tracking = "untracked" with a floor, or min_efficiency = 0.')
+        if not (math.isfinite(self.min_efficiency) and 0 <= self.min_efficiency < 1):
+            raise ValueError(
+                f"optimizer.min_efficiency = {self.min_efficiency!r} is out of range; allowed: "
+                "0 <= floor < 1 (a share of the open display's light, e.g. 0.005 for 0.5 %; 0 "
+                "sets no floor)."
             )
         if not (math.isfinite(self.quantize_share) and 0 <= self.quantize_share <= 1):
             raise ValueError(

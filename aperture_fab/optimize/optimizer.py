@@ -52,6 +52,9 @@ FROZEN_PLATE_START = 0.5
 TRACKED_SOLVE_ITERATIONS = 2
 #: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
 EFFICIENCY_PUPIL_SAMPLES = 32
+#: Weight of the brightness floor's penalty (1 - efficiency / floor)^2: a state 10 % below the
+#: floor costs 0.01, more than a typical image loss (MSE 1e-3), so the floor holds to a few %.
+FLOOR_WEIGHT = 1.0
 
 
 @dataclass(frozen=True)
@@ -193,18 +196,22 @@ def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: floa
 
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                  targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
-                 tail_share: float = 1.0) -> torch.Tensor:
-    """DESIGN.md's loss: gain-corrected MSE, averaged over targets, per eye state, plus
-    efficiency_weight x (1 - light efficiency); combined over the states by `combine_states`."""
+                 tail_share: float = 1.0, min_efficiency: float = 0.0) -> torch.Tensor:
+    """The design loss: gain-corrected MSE, averaged over targets, per eye state, plus
+    efficiency_weight x (1 - light efficiency) and, below a brightness floor min_efficiency,
+    FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`."""
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
         views = renderer.render_states(a, renderer.display_stack(displays[t]), states)
         per_state = per_state + gain_mse_states(views, targets[t])
-        if efficiency_weight > 0:
+        if efficiency_weight > 0 or min_efficiency > 0:
             opens = render_open_states(renderer.scene, displays[t], states,
                                        pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
             efficiency = views.mean((1, 2, 3)) / (opens.mean((1, 2, 3)) + 1e-12)
             per_state = per_state + efficiency_weight * (1 - efficiency)
+            if min_efficiency > 0:
+                short = torch.clamp(1 - efficiency / min_efficiency, min=0)
+                per_state = per_state + FLOOR_WEIGHT * short**2
     weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
     return combine_states(per_state / targets.shape[0], weights, tail_share)
 
@@ -328,7 +335,8 @@ def optimize(
                                  settings.tail_share)
         displays = shown_t if display_param is None else display_param
         return _design_loss(renderer, plate(iteration), displays, target_t, states,
-                            settings.efficiency_weight, settings.tail_share)
+                            settings.efficiency_weight, settings.tail_share,
+                            settings.min_efficiency)
 
     def keep_continuous() -> None:
         with torch.no_grad():

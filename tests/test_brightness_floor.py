@@ -1,0 +1,50 @@
+"""The brightness floor (optimizer.min_efficiency): the optimizer keeps the plate's light
+efficiency up to the floor, and gives up image quality for it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import tiny_config
+
+from aperture_fab.config import resolve
+from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.pipeline.design_job import design
+from aperture_fab.targets import digit
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+#: The floor may be missed by this share after a short run (a penalty, not a hard constraint).
+FLOOR_SLACK = 0.1
+
+
+def efficiency(config, result) -> float:  # type: ignore[no-untyped-def]
+    renderer = Renderer(config.scene, dtype=torch.float64)
+    a = torch.as_tensor(result.design.open_fraction)
+    shown = torch.as_tensor(result.design.displays[0])
+    with torch.no_grad():
+        view = renderer.render(a, shown, 0)
+        return float(view.mean() / render_open(config.scene, shown, 0).mean())
+
+
+@pytest.mark.slow
+def test_the_floor_holds_and_costs_quality() -> None:
+    free = tiny_config(**{"optimizer.iterations": 60})
+    floored = tiny_config(**{"optimizer.iterations": 60, "optimizer.min_efficiency": 0.02})
+    plain, bright = design([digit("3")], free), design([digit("3")], floored)
+    assert efficiency(free, plain) < 0.02  # the floor binds: the free design is darker
+    assert efficiency(floored, bright) >= 0.02 * (1 - FLOOR_SLACK)
+    assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
+
+
+@pytest.mark.parametrize(("overrides", "fragment"), [
+    ({"optimizer.min_efficiency": 1.0}, "optimizer.min_efficiency = 1.0 is out of range"),
+    ({"optimizer.min_efficiency": -0.1}, "optimizer.min_efficiency = -0.1 is out of range"),
+    ({"optimizer.min_efficiency": 0.01, "optimizer.tracking": "tracked"}, "tracked design"),
+])
+def test_bad_floors_are_refused(overrides: dict, fragment: str) -> None:
+    with pytest.raises(ValueError, match=fragment):
+        resolve("near-eye", overrides=overrides)
+
+
+def test_no_floor_is_the_default() -> None:
+    assert resolve("near-eye").optimizer.min_efficiency == 0.0
