@@ -395,7 +395,7 @@ def test_module_entry_point_reports_errors(sweep_dir: Path,
     from aperture_fab.sweep.__main__ import main
 
     path = write_sweep(sweep_dir, "[sweep]\ntargets = ['marker.png']\n[grid]\n")
-    assert main([str(path)]) == 2
+    assert main([str(path)]) == 3  # bad input, as `aperture-fab` says it
     assert "[grid]: is empty" in capsys.readouterr().err
 
 
@@ -436,7 +436,7 @@ def test_cli_main_runs_sweep(sweep_dir: Path, capsys: pytest.CaptureFixture[str]
     path = write_sweep(sweep_dir, GRID)
     assert main(["sweep", str(path), "--dry-run"]) == 0
     assert "6 grid points" in capsys.readouterr().out
-    assert main(["sweep", str(write_sweep(sweep_dir, "[sweep]\n", "bad.toml"))]) == 2
+    assert main(["sweep", str(write_sweep(sweep_dir, "[sweep]\n", "bad.toml"))]) == 3
 
 
 # -- real design jobs --------------------------------------------------------------------------

@@ -8,6 +8,10 @@ from collections.abc import Sequence
 
 from aperture_fab.sweep.command import add_parser
 
+#: The exit statuses of `aperture-fab` (cli.py) for these errors.
+EXIT_BAD_INPUT = 3
+EXIT_CANNOT_WRITE = 4
+
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m aperture_fab.sweep")
@@ -16,9 +20,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(["sweep", *(sys.argv[1:] if argv is None else argv)])
     try:
         return int(args.func(args))
-    except (ValueError, TypeError, FileNotFoundError) as err:
+    except (ValueError, TypeError, FileNotFoundError) as err:  # as `aperture-fab` reports them
         print(f"aperture-fab: error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except OSError as err:
+        print(f"aperture-fab: error: {err}", file=sys.stderr)
+        return EXIT_CANNOT_WRITE
 
 
 if __name__ == "__main__":

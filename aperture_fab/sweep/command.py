@@ -58,8 +58,9 @@ point.json, written last, marks it finished. Resuming is automatic: run the same
 and finished points are skipped (failed ones too, unless --retry-failed), a search replays its
 seed and continues where it stopped. A failed point is recorded with its error and never stops
 the sweep. Ctrl-C keeps every finished point. Results: OUT/results.csv, results.parquet,
-pareto.csv and sweep.html (the Pareto plot; click a point for its report). Exit status 0, 1
-when some points failed, 130 when interrupted. Cluster set-up: docs/sweep.md.
+pareto.csv and sweep.html (the Pareto plot; click a point for its report). Exit status 0; 1
+when some points failed (recorded); 2 when Ray, Optuna or pyarrow is missing; 3 for an error in
+the sweep file (nothing ran); 130 when interrupted. Cluster set-up: docs/sweep.md.
 """
 
 
