@@ -94,7 +94,7 @@ def add_parser(subparsers: Any) -> None:
                    help="run the points one after another in this process, without Ray")
     p.add_argument("--dry-run", action="store_true",
                    help="check the sweep file and every point, list them, run nothing")
-    p.add_argument("--quiet", action="store_true", help="no line per finished point")
+    p.add_argument("-q", "--quiet", action="store_true", help="no line per finished point")
     p.set_defaults(func=run)
 
 
