@@ -213,6 +213,9 @@ def test_grid_expansion_and_stable_ids(sweep_dir: Path) -> None:
     based = grid_points(load_spec(write_sweep(sweep_dir, GRID + "[base]\n'plate.thickness_mm'"
                                               " = 0.5\n", "c.toml")))
     assert not {p.id for p in based} & {p.id for p in points}
+    (sweep_dir / "marker.png").write_bytes((sweep_dir / "marker.png").read_bytes() + b"\0")
+    edited = grid_points(load_spec(spec.source))  # another target image: other points
+    assert not {p.id for p in edited} & {p.id for p in points}
 
 
 # -- the Pareto front -------------------------------------------------------------------------

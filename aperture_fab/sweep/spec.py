@@ -149,6 +149,8 @@ class SweepSpec:
     trials: int
     seed: int
     population: int
+    #: SHA-256 of the target files' names and contents: an edited image makes new points.
+    target_digest: str = ""
 
     @property
     def swept_keys(self) -> tuple[str, ...]:
@@ -310,7 +312,15 @@ def parse_spec(doc: Mapping[str, Any], source: Path) -> SweepSpec:
     return SweepSpec(source=source, mode=mode, targets=paths, objectives=parsed, preset=preset,
                      base_file=base_file, base=tuple((k, _freeze(v)) for k, v in base.items()),
                      grid=grid, space=space, trials=trials,
-                     seed=_whole(source, sweep, "seed", 0, 0), population=population)
+                     seed=_whole(source, sweep, "seed", 0, 0), population=population,
+                     target_digest=_digest(paths))
+
+
+def _digest(paths: tuple[Path, ...]) -> str:
+    digest = hashlib.sha256()
+    for path in paths:
+        digest.update(path.name.encode() + b"\0" + hashlib.sha256(path.read_bytes()).digest())
+    return digest.hexdigest()
 
 
 def _base_file(source: Path, name: Any) -> Mapping[str, Any] | None:
@@ -373,11 +383,11 @@ def load_spec(path: Path) -> SweepSpec:
 
 def point_id(spec: SweepSpec, overrides: Mapping[str, Any]) -> str:
     """A stable id for a design job: a hash of everything that decides its outputs (preset,
-    config file, overrides, target files' names). The same settings give the same id in any
-    sweep, so a rerun or a grown grid finds its finished points again."""
+    config file, overrides, the target files' names and contents). The same settings give the
+    same id in any sweep, so a rerun or a grown grid finds its finished points again."""
     payload = {"preset": spec.preset, "config": spec.base_file,
                "overrides": {k: _thaw(v) for k, v in sorted(overrides.items())},
-               "targets": [p.name for p in spec.targets]}
+               "targets": spec.target_digest}
     text = json.dumps(payload, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:ID_DIGITS]
 
