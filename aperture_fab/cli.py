@@ -126,7 +126,7 @@ def _cmd_presets(args: argparse.Namespace) -> int:
 def _add_fabrication_flags(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("fabrication")
     group.add_argument("--process", help="fabrication process (see `aperture-fab processes`); "
-                       "default resin")
+                       "default: the config's [process] (design.toml records it), else resin")
     group.add_argument("--force", action="store_true", default=None,
                        help="write parts the process cannot make, with the violations listed")
     group.add_argument("--step", action="store_true", default=None,
@@ -167,7 +167,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from aperture_fab.fabrication.part import make_part
     from aperture_fab.io.files import output_folder
     from aperture_fab.io.formats import PART_FORMATS
+    from aperture_fab.io.manifest import refuse_overwrite
     from aperture_fab.pipeline.design_job import write_part
+    from aperture_fab.pipeline.saved import check_sources
 
     config_path = args.config or args.design.parent / "design.toml"
     try:
@@ -183,11 +185,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
                          "it with --config.") from err
     config = resolve(args.preset, parse_toml(text, str(config_path)),
                      file_source=str(config_path))
-    fabrication = _fabrication(args, config.extra)
+    check_sources(config_path, args.design, "design")
+    fabrication = _fabrication(args, config.extra)  # the process design.toml records, or --process
     folder = output_folder(args.out)
     named = [f for f in PART_FORMATS.values() if args.out.suffix.lower() in f.suffixes]
     formats = ((named[0].name,) if named else
                tuple(name for name in PART_FORMATS if name != "step" or fabrication.step))
+    refuse_overwrite(folder, [PART_FORMATS[name].file_name for name in formats] + [args.out.name])
     part = make_part(open_fraction, config.scene, fabrication)
     written = write_part(folder, part, fabrication, formats, progress=not args.quiet)
     if named and args.out.name != named[0].file_name:
@@ -250,7 +254,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
     folder = output_folder(args.out)
     try:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
-                            validation=validation, resume=args.resume, progress=not args.quiet)
+                            validation=validation, resume=args.resume, progress=not args.quiet,
+                            command=args.command_line)
     except Interrupted as stop:
         print(f"\ninterrupted at iteration {stop.state['iteration']}; checkpoint saved in "
               f"{folder}. Continue with the same command and --resume.", file=sys.stderr)
@@ -523,6 +528,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # Recorded in an output folder's manifest.json: how to re-run what wrote it.
+    args.command_line = ["aperture-fab", *(sys.argv[1:] if argv is None else argv)]
     try:
         return int(args.func(args))
     except (ValueError, TypeError, FileNotFoundError, FloatingPointError) as err:

@@ -48,8 +48,10 @@ class Hole:
 
 
 def parse_holes(text: str) -> list[Hole]:
-    """Holes from the text of holes.csv (header row required)."""
-    reader = csv.DictReader(text.splitlines())
+    """Holes from the text of holes.csv (header row required; '#' comment lines, such as the
+    outline line aperture-fab writes last, are skipped)."""
+    reader = csv.DictReader(line for line in text.splitlines()
+                            if not line.lstrip().startswith("#"))
     missing = [name for name in COLUMNS if name not in (reader.fieldnames or [])]
     if missing:
         raise ValueError(f"holes.csv lacks columns {missing}; expected {list(COLUMNS)}.")

@@ -2,8 +2,9 @@
 
 Runs `aperture-fab design` (small, seeded, every format), `validate` and `render` into a
 folder and prints one SHA-256 per file. Fields that legitimately differ between two runs of
-the same code are normalized first: stage timings and package versions, the report's digest of them, the 3MF zip
-timestamps, the DXF header (dates, GUIDs), the STEP header date, the work folder's path.
+the same code are normalized first: stage timings and package versions, the report's digest
+of them, the 3MF zip timestamps, the manifest's time and hashes, the DXF header (dates, GUIDs),
+the STEP header date, the work folder's path.
 
     python tools/output_digest.py --work /tmp/digest > before.txt
     (change the code)
@@ -47,6 +48,12 @@ def normalized(path: Path, work: Path) -> bytes:
         report.pop("timings_s", None)
         report.pop("versions", None)  # the installed packages, not the code's behaviour
         return json.dumps(report, sort_keys=True).encode()
+    if path.name == "manifest.json":
+        # Its time and its files' hashes (of timings, dates) vary; each file has its own line.
+        manifest = json.loads(data)
+        manifest.pop("created_utc", None)
+        manifest["files"] = sorted(manifest["files"])
+        return json.dumps(manifest, sort_keys=True).encode()
     if path.suffix == ".html":
         text = TIMING_SECTION.sub("", data.decode())
         return REPORT_DIGEST.sub("", text).encode()
