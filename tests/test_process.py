@@ -12,14 +12,16 @@ from aperture_fab.fabrication.process import (
     PROCESSES,
     Process,
     UnmakeableError,
-    check_plate,
     drawn_radii_mm,
+    process_summary,
+    resolve_process,
+)
+from aperture_fab.fabrication.rules import (
+    check_plate,
     hole_radius_bounds,
     makeable_processes,
     min_pitch_mm,
     open_fraction_bounds,
-    process_summary,
-    resolve_process,
 )
 from aperture_fab.optics.scene import Plate
 

@@ -13,9 +13,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.fabrication.layout import HoleLayout
+from aperture_fab.fabrication.layout import HoleLayout, face_webs, layout_stats
 from aperture_fab.fabrication.process import PROCESSES, Process, UnmakeableError, resolve_process
-from aperture_fab.fabrication.quantize import layout_stats, quantize
+from aperture_fab.fabrication.quantize import quantize
 from aperture_fab.optics.scene import Plate
 
 TOL = 1e-9
@@ -424,6 +424,18 @@ def test_layout_stats_matches_brute_force_on_a_quantized_tilted_plate() -> None:
     assert stats["smallest_web_mm"] == pytest.approx(pairwise_min_web(layout))
     assert stats["smallest_edge_web_mm"] == pytest.approx(edge_min_web(layout))
     assert stats["hole_count"] == layout.count
+
+
+def test_face_webs_forward_pairs_meet_every_neighbour_once() -> None:
+    # The statistics (forward pairs) and the rule check (all eight neighbours) share face_webs.
+    plate = make_plate(7, 5, (0.2, 0.2), 0.1, "chief_ray")
+    a = np.random.default_rng(4).uniform(0, 0.5, (5, 7))
+    layout = quantize(a, plate, PROCESSES["photomask"], tilt_target_mm=(0.3, -0.2),
+                      eye_distance_mm=5.0, force=True)
+    webs = face_webs(layout, layout.thickness_mm / 2)
+    neighbour = np.minimum(webs.forward_mm, webs.backward_mm)
+    assert float(webs.forward_mm.min()) == pytest.approx(float(neighbour.min()))
+    assert np.array_equal(webs.thinnest_mm, np.minimum(neighbour, webs.edge_mm))
 
 
 def test_empty_layout_stats() -> None:

@@ -21,7 +21,8 @@ from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, outline_points_mm
 from aperture_fab.fabrication.mesh_holes import mesh_hole_loops
 from aperture_fab.fabrication.part import FabricationSettings, Part, make_part
-from aperture_fab.fabrication.process import PROCESSES, check_plate
+from aperture_fab.fabrication.process import PROCESSES
+from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.formats import read_stl, stl_bytes
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.retrace import (

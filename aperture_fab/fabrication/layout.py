@@ -1,16 +1,21 @@
-"""The holes to make: what quantization produces and fabrication consumes."""
+"""The holes to make: what quantization produces and fabrication consumes, and their geometry
+(the webs between holes, summary numbers)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-__all__ = ["Violation", "HoleLayout"]
+__all__ = ["FaceWebs", "HoleLayout", "Violation", "face_webs", "layout_stats"]
 
 #: How far (per mm of z) a convergent layout's axes may differ from (E_xy - centres) / D.
 CONVERGE_AXIS_TOL = 1e-9
+#: Neighbour offsets (row, col) that meet every adjacent pair of cells once, from its first cell
+#: (right, down, down-right, down-left); their negations are a hole's other four neighbours.
+FORWARD_NEIGHBOURS = ((0, 1), (1, 0), (1, 1), (1, -1))
 
 
 @dataclass(frozen=True)
@@ -134,3 +139,86 @@ class HoleLayout:
         ex, ey, _ = self.converge_mm
         scale = self.grid_scale(z_mm)
         return ex + (xs - ex) * scale, ey + (ys - ey) * scale
+
+
+@dataclass(frozen=True)
+class FaceWebs:
+    """The thinnest web of each hole of a layout at one height, mm; (K,) float64 each.
+
+    edge_mm: to the plate's outline.
+    forward_mm: to its FORWARD_NEIGHBOURS (inf where it has none); over all holes this meets
+        every pair of adjacent holes once.
+    backward_mm: to its other four neighbours (inf where it has none).
+    """
+
+    edge_mm: np.ndarray
+    forward_mm: np.ndarray
+    backward_mm: np.ndarray
+
+    @property
+    def thinnest_mm(self) -> np.ndarray:
+        """(K,) float64, mm: the thinnest web of each hole, to its eight neighbours and the
+        outline."""
+        return np.minimum(self.edge_mm, np.minimum(self.forward_mm, self.backward_mm))
+
+
+def face_webs(layout: HoleLayout, z_mm: float) -> FaceWebs:
+    """The webs of every hole at height z_mm above mid-thickness (tilted holes are measured
+    where their axis crosses that plane)."""
+    nx, ny = layout.grid
+    rows, cols = layout.cells[:, 0], layout.cells[:, 1]
+    slot = np.full((ny, nx), -1, dtype=np.int64)
+    slot[rows, cols] = np.arange(layout.count)
+    x = layout.centres_mm[:, 0] + z_mm * layout.axes[:, 0]
+    y = layout.centres_mm[:, 1] + z_mm * layout.axes[:, 1]
+    r = layout.radii_mm
+    half_w, half_h = layout.outline_mm[0] / 2, layout.outline_mm[1] / 2
+
+    def to_neighbours(offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
+        webs = np.full(layout.count, np.inf)
+        for di, dj in offsets:
+            nr, nc = rows + di, cols + dj
+            inside = (nr >= 0) & (nr < ny) & (nc >= 0) & (nc < nx)
+            other = np.full(layout.count, -1, dtype=np.int64)
+            other[inside] = slot[nr[inside], nc[inside]]
+            has = other >= 0
+            o = other[has]
+            gap = np.hypot(x[has] - x[o], y[has] - y[o]) - r[has] - r[o]
+            webs[has] = np.minimum(webs[has], gap)
+        return webs
+
+    backward = tuple((-di, -dj) for di, dj in FORWARD_NEIGHBOURS)
+    return FaceWebs(
+        edge_mm=np.minimum(half_w - np.abs(x) - r, half_h - np.abs(y) - r),
+        forward_mm=to_neighbours(FORWARD_NEIGHBOURS),
+        backward_mm=to_neighbours(backward),
+    )
+
+
+def layout_stats(layout: HoleLayout) -> dict[str, Any]:
+    """Summary numbers of a layout (webs measured at both faces, neighbours incl. diagonals).
+
+    Keys: hole_count, smallest_hole_diameter_mm, largest_hole_diameter_mm, smallest_web_mm
+    (between adjacent holes; None with fewer than two neighbours), smallest_edge_web_mm,
+    open_area_fraction (open area / cell-grid area), violation_count.
+    """
+    nx, ny = layout.grid
+    px, py = layout.pitch_mm
+    stats: dict[str, Any] = {
+        "hole_count": layout.count,
+        "smallest_hole_diameter_mm": None,
+        "largest_hole_diameter_mm": None,
+        "smallest_web_mm": None,
+        "smallest_edge_web_mm": None,
+        "open_area_fraction": float(np.sum(np.pi * layout.radii_mm**2)) / (nx * px * ny * py),
+        "violation_count": len(layout.violations),
+    }
+    if layout.count == 0:
+        return stats
+    stats["smallest_hole_diameter_mm"] = float(2 * layout.radii_mm.min())
+    stats["largest_hole_diameter_mm"] = float(2 * layout.radii_mm.max())
+    faces = [face_webs(layout, z) for z in (-layout.thickness_mm / 2, layout.thickness_mm / 2)]
+    web = min(float(f.forward_mm.min()) for f in faces)
+    stats["smallest_web_mm"] = None if math.isinf(web) else web
+    stats["smallest_edge_web_mm"] = min(float(f.edge_mm.min()) for f in faces)
+    return stats

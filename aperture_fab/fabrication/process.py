@@ -4,7 +4,8 @@ A `Process` states the smallest hole, the thinnest web of material (between hole
 plate's edge), the plate thicknesses it handles, how hole sizes are quantized (a radius step or a
 list of discrete diameters) and its tolerances. Some rules scale with the plate's thickness
 (photo-etching, laser cutting: "hole >= 1.1 x metal thickness"); `min_hole_for` and
-`min_web_for` give the rule at a given thickness.
+`min_web_for` give the rule at a given thickness. What the rules allow in a given plate (radius
+range, pitch, margin) and which rules a layout breaks: aperture_fab.fabrication.rules.
 
 Radii in a `HoleLayout` are the holes as they should come out (the nominal, made holes); the
 systematic bias is what the process adds to the radius that is drawn, so `drawn_radii_mm`
@@ -23,18 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from aperture_fab.optics.scene import Plate
-
 __all__ = [
     "PROCESSES",
     "Process",
     "UnmakeableError",
-    "check_plate",
     "drawn_radii_mm",
-    "hole_radius_bounds",
-    "makeable_processes",
-    "min_pitch_mm",
-    "open_fraction_bounds",
     "process_summary",
     "resolve_process",
 ]
@@ -354,103 +348,6 @@ def process_summary(p: Process) -> str:
     ]
     lines += [f"  source: {s}" for s in p.sources]
     return "\n".join(lines)
-
-
-def min_pitch_mm(process: Process, thickness_mm: float) -> float:
-    """Smallest cell pitch that holds the smallest hole plus one web."""
-    return process.min_hole_for(thickness_mm) + process.min_web_for(thickness_mm)
-
-
-def hole_radius_bounds(process: Process, plate: Plate) -> tuple[float, float]:
-    """(smallest makeable radius, largest radius that keeps the web) in mm, straight holes.
-
-    The largest may be below the smallest: then no hole fits (see check_plate).
-    """
-    t = plate.thickness_mm
-    r_min = process.min_hole_for(t) / 2
-    r_max = min(plate.pitch_mm) / 2 - process.min_web_for(t) / 2
-    return r_min, r_max
-
-
-def open_fraction_bounds(process: Process, plate: Plate) -> tuple[float, float]:
-    """(a_min, a_max): open-area fractions of the smallest and largest makeable holes.
-
-    a = pi r^2 / (px py). A cell is either closed (0) or within [a_min, a_max]. Both are 0
-    when no hole fits the cell.
-    """
-    r_min, r_max = hole_radius_bounds(process, plate)
-    if r_max < r_min:
-        return 0.0, 0.0
-    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
-    return math.pi * r_min**2 / cell, math.pi * r_max**2 / cell
-
-
-def makeable_processes(plate: Plate, exclude: str = "") -> list[str]:
-    """Names of the presets that accept the plate's thickness and fit a hole in its cells."""
-    names = []
-    for name, p in PROCESSES.items():
-        if name == exclude or not p.accepts_thickness(plate.thickness_mm):
-            continue
-        if min_pitch_mm(p, plate.thickness_mm) <= min(plate.pitch_mm):
-            names.append(name)
-    return names
-
-
-def _pitch_alternatives(plate: Plate, exclude: str) -> str:
-    """Which presets could make the plate's pitch: at its thickness, else at another one."""
-    here = makeable_processes(plate, exclude)
-    if here:
-        return f"processes that can make it at {plate.thickness_mm:g} mm: {', '.join(here)}"
-    pitch = min(plate.pitch_mm)
-    elsewhere = []
-    for name, p in PROCESSES.items():
-        lo, hi = p.thickness_range_mm
-        if name == exclude or min_pitch_mm(p, lo) > pitch:
-            continue
-        # The rules grow with thickness: bisect for the thickest plate that still fits.
-        good, bad = lo, hi
-        if min_pitch_mm(p, hi) <= pitch:
-            good = hi
-        else:
-            for _ in range(40):
-                mid = (good + bad) / 2
-                good, bad = (mid, bad) if min_pitch_mm(p, mid) <= pitch else (good, mid)
-        elsewhere.append(f"{name} (thickness {lo:g} to {good:.3g} mm)")
-    if elsewhere:
-        return (f"no process makes it at {plate.thickness_mm:g} mm thickness; at another "
-                f"thickness: {', '.join(elsewhere)}")
-    return "no preset process can make cells this small"
-
-
-def check_plate(process: Process, plate: Plate) -> None:
-    """Raise UnmakeableError (a ValueError) if the process cannot make this plate at all.
-
-    Checks the thickness range and that the smallest hole plus its web fits the cell pitch.
-    The message gives the allowed values and the presets that would accept the plate.
-    """
-    problems = []
-    t = plate.thickness_mm
-    if not process.accepts_thickness(t):
-        lo, hi = process.thickness_range_mm
-        others = [n for n, p in PROCESSES.items()
-                  if n != process.name and p.accepts_thickness(t)]
-        accept = ", ".join(others) if others else "none of the presets"
-        problems.append(
-            f"plate.thickness_mm = {t:g} is outside the {process.name} range {lo:g} to {hi:g} mm "
-            f"(processes that accept {t:g} mm: {accept}); choose a thickness in range or "
-            "another process"
-        )
-    need = min_pitch_mm(process, t)
-    pitch = min(plate.pitch_mm)
-    if need > pitch:
-        problems.append(
-            f"plate.pitch_mm = {plate.pitch_mm} is too small for {process.name}: its smallest "
-            f"hole ({process.min_hole_for(t):.3g} mm) plus web ({process.min_web_for(t):.3g} mm) "
-            f"needs a pitch of at least {need:.3g} mm (scale the plate by {need / pitch:.3g}x); "
-            f"{_pitch_alternatives(plate, process.name)}"
-        )
-    if problems:
-        raise UnmakeableError("; ".join(problems) + ".")
 
 
 def drawn_radii_mm(process: Process, radii_mm: np.ndarray) -> np.ndarray:

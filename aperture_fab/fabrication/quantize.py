@@ -37,33 +37,27 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from aperture_fab.fabrication.layout import HoleLayout, Violation
-from aperture_fab.fabrication.process import (
-    PROCESSES,
-    Process,
-    UnmakeableError,
+from aperture_fab.fabrication.process import PROCESSES, Process, UnmakeableError
+from aperture_fab.fabrication.rules import (
+    MAX_CELL_VIOLATIONS,
     check_plate,
     hole_radius_bounds,
     makeable_processes,
+    radius_range,
+    resolve_margin_mm,
 )
 from aperture_fab.optics.scene import Plate
 
-__all__ = ["MadeSizes", "UnmakeableError", "layout_stats", "made_sizes", "quantize"]
+__all__ = ["MadeSizes", "made_sizes", "quantize"]
 
 #: A design losing more than this share of its open area is refused (unless forced).
 MAX_LOST_FRACTION = 0.5
-#: Above this many cells breaking one rule, one aggregated Violation is recorded instead.
-MAX_CELL_VIOLATIONS = 50
-#: Smallest default margin around the cell grid.
-MIN_MARGIN_MM = 1.0
 #: The eye (where chief-ray axes meet) must be this many plate thicknesses from mid-thickness.
 MIN_EYE_DISTANCE_THICKNESSES = 1.0
-#: When forced past a pitch no hole fits, holes may grow to this share of the pitch (radius).
-FORCED_MAX_RADIUS_FRACTION = 0.45
 #: Geometric slack for rounding (mm); far below any process tolerance.
 EPS_MM = 1e-9
 #: Floyd–Steinberg weights: (row offset, column offset along the scan direction, weight).
@@ -138,8 +132,7 @@ def _clip_loss(a: np.ndarray, process: Process, plate: Plate, scale: float) -> f
     if total <= 0:
         return 0.0
     px, py = plate.pitch_mm[0] * scale, plate.pitch_mm[1] * scale
-    t = plate.thickness_mm
-    r_lo, r_hi = process.min_hole_for(t) / 2, min(px, py) / 2 - process.min_web_for(t) / 2
+    r_lo, r_hi = hole_radius_bounds(process, plate, scale)
     if r_hi < r_lo:
         return 1.0
     a_hi = math.pi * r_hi**2 / (px * py)
@@ -176,23 +169,6 @@ def _lost_area_error(a: np.ndarray, process: Process, plate: Plate, lost: float)
     )
 
 
-def _radius_rules(process: Process, plate: Plate) -> tuple[float, float, float]:
-    """(smallest radius, largest radius, web) in mm; when no hole fits (only when forced) both
-    rules are relaxed to what the cell geometry allows."""
-    r_lo, r_hi = hole_radius_bounds(process, plate)
-    min_web = process.min_web_for(plate.thickness_mm)
-    if r_hi < r_lo:
-        cap = FORCED_MAX_RADIUS_FRACTION * min(plate.pitch_mm)
-        r_lo, r_hi = min(r_lo, cap), max(r_hi, cap)
-        min_web = min(plate.pitch_mm) - 2 * r_hi
-    return r_lo, r_hi, min_web
-
-
-def _cell_radius(plate: Plate, min_web: float, r_hi: float, top_scale: float) -> float:
-    """The largest radius that keeps half a web inside the cell at both faces."""
-    return min(min(plate.pitch_mm) * top_scale / 2 - min_web / 2, r_hi)
-
-
 @dataclass(frozen=True)
 class MadeSizes:
     """The open-area fractions a process makes in a cell of a plate: what a design can ask for.
@@ -226,12 +202,13 @@ def made_sizes(plate: Plate, process: Process, eye_distance_mm: float | None = N
     face, as in `quantize`). Raises UnmakeableError when the process cannot make the plate.
     """
     check_plate(process, plate)  # says why no hole fits
-    r_lo, r_hi, min_web = _radius_rules(process, plate)
+    rng = radius_range(process, plate)
+    r_lo = rng.lo_mm
     top_scale = 1.0
     if plate.hole_axis == "chief_ray" and eye_distance_mm is not None:
         top_scale = 1.0 - plate.thickness_mm / (2 * eye_distance_mm)
-    sizes = _allowed_sizes(process, r_lo, r_hi)
-    top = _largest_size(sizes, _cell_radius(plate, min_web, r_hi, top_scale), r_lo)
+    sizes = _allowed_sizes(process, r_lo, rng.hi_mm)
+    top = _largest_size(sizes, rng.cell_max_mm(plate, top_scale), r_lo)
     cell = plate.pitch_mm[0] * plate.pitch_mm[1]
 
     def made(r: np.ndarray) -> np.ndarray:
@@ -285,7 +262,8 @@ def quantize(
             raise
         violations.append(Violation("process", None, t, 0.0, f"forced despite: {err}"))
 
-    r_lo, r_hi, min_web = _radius_rules(process, plate)
+    rng = radius_range(process, plate)
+    r_lo, r_hi, min_web = rng.lo_mm, rng.hi_mm, rng.web_mm
     sizes = _allowed_sizes(process, r_lo, r_hi)
 
     # Hole axes, and the largest radius each cell allows at both faces.
@@ -315,19 +293,8 @@ def quantize(
     else:
         ax = np.zeros_like(cx)
         ay = np.zeros_like(cy)
-    r_cell = _cell_radius(plate, min_web, r_hi, top_scale)
-
-    least_margin = overhang + min_web / 2
-    if outline_margin_mm is None:
-        margin = max(MIN_MARGIN_MM, 2 * min_web + overhang)
-    else:
-        margin = outline_margin_mm
-    if not (math.isfinite(margin) and margin >= least_margin):
-        raise ValueError(
-            f"outline_margin_mm = {margin!r} is too small; allowed: >= {least_margin:.3g} mm "
-            f"(with the half web inside the cell it keeps the {min_web:.3g} mm edge web at both "
-            f"faces; chief-ray holes' scaled grid reaches {overhang:.3g} mm past the cell grid)."
-        )
+    r_cell = rng.cell_max_mm(plate, top_scale)
+    margin = resolve_margin_mm(min_web, overhang, outline_margin_mm)
 
     # Clip what the design asks to what each cell can hold; record the rule breaks.
     cell_area = px * py
@@ -494,55 +461,3 @@ def _balance_listed(index: np.ndarray, top: np.ndarray, err: np.ndarray, areas: 
             k = int(np.argmax(np.where(room, e, -np.inf)))
             e[k] -= areas[k_all[k] + 1] - areas[k_all[k]]
             k_all[k] += 1
-
-
-def _grid_webs(layout: HoleLayout, z: float) -> tuple[float, float]:
-    """(smallest web between neighbouring holes, smallest web to the edge) at height z."""
-    nx, ny = layout.grid
-    x = np.full((ny, nx), np.nan)
-    y = np.full((ny, nx), np.nan)
-    r = np.full((ny, nx), np.nan)
-    rows, cols = layout.cells[:, 0], layout.cells[:, 1]
-    x[rows, cols] = layout.centres_mm[:, 0] + z * layout.axes[:, 0]
-    y[rows, cols] = layout.centres_mm[:, 1] + z * layout.axes[:, 1]
-    r[rows, cols] = layout.radii_mm
-    webs = [np.inf]
-    # Right, down, down-right and down-left neighbours cover every adjacent pair once.
-    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = (slice(0, ny - di), slice(max(0, -dj), nx - max(0, dj)))
-        b = (slice(di, ny), slice(max(0, dj), nx - max(0, -dj)))
-        gap = np.hypot(x[a] - x[b], y[a] - y[b]) - r[a] - r[b]
-        if np.any(np.isfinite(gap)):
-            webs.append(float(np.nanmin(gap)))
-    half_w, half_h = layout.outline_mm[0] / 2, layout.outline_mm[1] / 2
-    edge = min(np.nanmin(half_w - np.abs(x) - r), np.nanmin(half_h - np.abs(y) - r))
-    return min(webs), float(edge)
-
-
-def layout_stats(layout: HoleLayout) -> dict[str, Any]:
-    """Summary numbers of a layout (webs measured at both faces, neighbours incl. diagonals).
-
-    Keys: hole_count, smallest_hole_diameter_mm, largest_hole_diameter_mm, smallest_web_mm
-    (between adjacent holes; None with fewer than two neighbours), smallest_edge_web_mm,
-    open_area_fraction (open area / cell-grid area), violation_count.
-    """
-    nx, ny = layout.grid
-    px, py = layout.pitch_mm
-    stats: dict[str, Any] = {
-        "hole_count": layout.count,
-        "smallest_hole_diameter_mm": None,
-        "largest_hole_diameter_mm": None,
-        "smallest_web_mm": None,
-        "smallest_edge_web_mm": None,
-        "open_area_fraction": float(np.sum(np.pi * layout.radii_mm**2)) / (nx * px * ny * py),
-        "violation_count": len(layout.violations),
-    }
-    if layout.count == 0:
-        return stats
-    stats["smallest_hole_diameter_mm"] = float(2 * layout.radii_mm.min())
-    stats["largest_hole_diameter_mm"] = float(2 * layout.radii_mm.max())
-    faces = [_grid_webs(layout, z) for z in (-layout.thickness_mm / 2, layout.thickness_mm / 2)]
-    web = min(f[0] for f in faces)
-    stats["smallest_web_mm"] = None if math.isinf(web) else web
-    stats["smallest_edge_web_mm"] = min(f[1] for f in faces)
-    return stats
