@@ -9,7 +9,9 @@ Two rates per run: "points/h" counts from the local Ray instance being up to the
 recorded (what a long sweep converges to); "with start" counts the whole command (Ray start,
 checks, tables and page, shutdown). Scaling = the 2-worker rate / the 1-worker rate (medians
 of the repeats); 2.0 is perfect on 2 cores. Prints the CPU count and the load average, since
-other work on the machine takes cores from the workers.
+other work on the machine takes cores from the workers; "CPU s" is the CPU time a point's
+worker process spent on it, and "idle-core bound" = workers x 3600 / CPU s, the rate the points
+alone would reach on that many otherwise idle cores (no Ray or start-up overhead).
 """
 
 from __future__ import annotations
@@ -90,10 +92,12 @@ def run_once(sweep: Path, out: Path, workers: int) -> dict[str, float]:
         raise RuntimeError(f"{len(outcome.points) - ok} point(s) failed; see {out}")
     points_s = marks[-1] - marks[0]  # from "started a local Ray instance" to the last point
     seconds = [r["seconds"] for r in outcome.records.values()]
+    cpu = [r["cpu_seconds"] for r in outcome.records.values()]
     return {"points": len(outcome.points), "points_s": points_s, "total_s": total_s,
             "points_per_hour": len(outcome.points) / points_s * SECONDS_PER_HOUR,
             "points_per_hour_with_start": len(outcome.points) / total_s * SECONDS_PER_HOUR,
-            "median_point_s": statistics.median(seconds)}
+            "median_point_s": statistics.median(seconds),
+            "median_point_cpu_s": statistics.median(cpu)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,11 +127,13 @@ def main(argv: list[str] | None = None) -> int:
                       flush=True)
     median = {w: {k: statistics.median(r[k] for r in rs) for k in rs[0]}
               for w, rs in runs.items()}
-    print(f"{'workers':>8} {'points/h':>10} {'with start':>11} {'median point s':>15}")
+    print(f"{'workers':>8} {'points/h':>10} {'with start':>11} {'median point s':>15} "
+          f"{'CPU s':>7} {'idle-core bound':>16}")
     for w in WORKERS:
         m = median[w]
+        bound = w * SECONDS_PER_HOUR / m["median_point_cpu_s"]
         print(f"{w:>8} {m['points_per_hour']:>10.0f} {m['points_per_hour_with_start']:>11.0f} "
-              f"{m['median_point_s']:>15.1f}")
+              f"{m['median_point_s']:>15.1f} {m['median_point_cpu_s']:>7.1f} {bound:>16.0f}")
     scaling = median[2]["points_per_hour"] / median[1]["points_per_hour"]
     scaling_start = (median[2]["points_per_hour_with_start"]
                      / median[1]["points_per_hour_with_start"])

@@ -159,7 +159,7 @@ def run_point(job: Job) -> tuple[dict[str, Any], dict[str, bytes]]:
     """
     from aperture_fab.pipeline import run_design
 
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     folder = Path(tempfile.mkdtemp(prefix=f"sweep-{job.point.id}-")) if job.gather else job.folder
     if not job.gather and folder.exists():
         shutil.rmtree(folder)  # a failed attempt's files: never mix them with this run's
@@ -194,6 +194,7 @@ def run_point(job: Job) -> tuple[dict[str, Any], dict[str, bytes]]:
     finally:
         _restore_threads(threads)
     record["seconds"] = time.perf_counter() - start
+    record["cpu_seconds"] = time.process_time() - cpu_start  # this worker process, all threads
     record["figures"]["seconds"] = record["seconds"]
     write_atomic(folder / POINT_FILE, json.dumps(record, indent=2))
     files: dict[str, bytes] = {}
