@@ -3,12 +3,115 @@
 from __future__ import annotations
 
 import argparse
+import errno
+import re
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["main"]
+__all__ = ["EXIT_CODES_HELP", "main"]
+
+#: Exit statuses: distinct, so that scripts can tell a bad input from a refused part.
+EXIT_OK = 0
+EXIT_FAILED = 1  # the tool judged and refused: the process cannot make the plate, or it diverged
+EXIT_USAGE = 2  # argparse's own status for a bad command line
+EXIT_BAD_INPUT = 3
+EXIT_CANNOT_WRITE = 4
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+
+EXIT_CODES_HELP = f"""\
+exit status:
+  {EXIT_OK}    success
+  {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
+       anyway), or the optimization diverged
+  {EXIT_USAGE}    usage error: an unknown command or flag, or a flag's value of the wrong type
+  {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
+  {EXIT_CANNOT_WRITE}    a file could not be written or read (no permission, disk full, read-only)
+  {EXIT_INTERRUPTED}  interrupted (Ctrl-C); `design` saves a checkpoint first (--resume goes on)
+
+-q/--quiet prints only errors and the final one-line result; -v/--verbose adds tracebacks to
+errors and the time of each stage. Progress bars appear only when stderr is a terminal; in a log
+each stage is one plain line instead.
+"""
+
+#: (module, class) of the errors that are a failure the tool judged (EXIT_FAILED). Matched by
+#: name so that the light commands need not import the optimizer (torch) to check.
+JUDGED_FAILURES: tuple[tuple[str, str], ...] = (
+    ("aperture_fab.fabrication.process", "UnmakeableError"),
+    ("aperture_fab.optimize.optimizer", "DivergedError"),
+)
+
+#: What to do about a file system error, by errno.
+OS_ERROR_FIXES: dict[int, str] = {
+    errno.ENOSPC: "the disk is full: free some space, or give --out on another disk",
+    errno.EDQUOT: "the disk quota is used up: free some space, or give --out on another disk",
+    errno.EACCES: "no permission: choose an --out you can write (e.g. under your home folder)",
+    errno.EPERM: "no permission: choose an --out you can write (e.g. under your home folder)",
+    errno.EROFS: "the file system is read-only: choose an --out on a writable disk",
+    errno.EISDIR: "it is a folder: give a file name inside it",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another --out",
+}
+
+#: The temporary name write_atomic gives a file while it writes it, and the file's own name.
+TEMP_NAME = re.compile(r"\.([^/\\]+)\.[0-9a-f]{12}\.tmp$")
+
+#: Warnings raised from this package's files are the tool's own (printed as one line).
+PACKAGE_DIR = str(Path(__file__).resolve().parent)
+
+
+@dataclass(frozen=True)
+class Output:
+    """How much the command prints, chosen once in `main` and passed down (args.output).
+
+    quiet: only errors and the final one-line result. verbose: tracebacks and stage timings.
+    terminal: stderr is a terminal, so progress bars may redraw it; otherwise (a log) each
+    stage is one plain line.
+    """
+
+    quiet: bool
+    verbose: bool
+    terminal: bool
+
+    @property
+    def progress(self) -> bool:
+        """Whether to draw progress bars (tqdm writes carriage returns, unreadable in a log)."""
+        return self.terminal and not self.quiet
+
+    def detail(self, line: str) -> None:
+        """A result line beyond the final one (tables, notes): not with --quiet."""
+        if not self.quiet:
+            print(line)
+
+    def stage(self, line: str) -> None:
+        """A stage starting, as a plain line on stderr when there are no progress bars."""
+        if not self.quiet and not self.terminal:
+            print(f"aperture-fab: {line}", file=sys.stderr, flush=True)
+
+    def timings(self, timings_s: dict[str, float]) -> None:
+        """Seconds per stage, with --verbose."""
+        if self.verbose and timings_s:
+            print("timings: " + ", ".join(f"{k.removesuffix('_s')} {v:.2f} s"
+                                          for k, v in timings_s.items()), file=sys.stderr)
+
+    def warn(self, line: str) -> None:
+        if not self.quiet:
+            print(f"aperture-fab: warning: {line}", file=sys.stderr)
+
+    def interrupted(self, line: str) -> None:
+        """Ctrl-C: not an error, but said even with --quiet."""
+        print(f"aperture-fab: interrupted {line}", file=sys.stderr)
+
+    def error(self, line: str) -> None:
+        print(f"aperture-fab: error: {line}", file=sys.stderr)
+
+    def traceback(self) -> None:
+        """The traceback of the exception being handled, with --verbose."""
+        if self.verbose:
+            import traceback
+
+            traceback.print_exc()
 
 DESCRIPTION = """\
 Design and fabricate coded pinhole apertures for slim near-eye displays.
@@ -151,6 +254,45 @@ def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
                                         "step": args.step})
 
 
+def _part_out(out: Path, allowed: tuple[str, ...]) -> Any:
+    """The part format an --out names (a PartFormat), or None when it is a folder: an existing
+    folder or a name without a suffix. Any other suffix is refused (not made a folder of that
+    name, which is what a typo such as plate.stk would otherwise give)."""
+    from aperture_fab.io.formats import PART_FORMATS
+
+    suffix = out.suffix.lower()
+    if not suffix or out.is_dir():
+        return None
+    if suffix not in allowed:
+        raise ValueError(
+            f"--out {out}: {out.suffix!r} is not a part file suffix; allowed: "
+            f"{' '.join(allowed)} (that one file), or a folder without a suffix (every "
+            f"format). Give e.g. --out {out.with_suffix('.stl')} (a file) or --out "
+            f"{out.with_suffix('')} (a folder).")
+    return next(f for f in PART_FORMATS.values() if suffix in f.suffixes)
+
+
+def _report_forced(output: Output, part: Any, config: Any, fabrication: Any) -> None:
+    """With --force, say honestly how many holes break which of the process's rules (the part
+    is written as designed, not fixed): quantize's resolved violations undercount them."""
+    from aperture_fab.fabrication.rules import layout_violations
+
+    if not fabrication.force:
+        return
+    broken = layout_violations(part.layout, config.scene.plate, fabrication.process)
+    if not broken:
+        return
+    holes: dict[str, set[Any]] = {}
+    for v in broken:
+        holes.setdefault(v.rule, set()).add(v.cell)
+    rules = ", ".join(f"{rule}: {'the whole plate' if cells == {None} else f'{len(cells)} holes'}"
+                      for rule, cells in holes.items())
+    cells = {c for v in broken if v.cell is not None for c in [v.cell]}
+    output.warn(f"--force: {len(cells)} of {part.layout.count} holes break process "
+                f"{fabrication.process.name}'s rules ({rules}); written anyway, as designed. The "
+                "process may not make them: see `aperture-fab processes`, or drop --force.")
+
+
 def _cmd_processes(args: argparse.Namespace) -> int:
     from aperture_fab.fabrication.process import PROCESSES, process_summary
 
@@ -161,23 +303,17 @@ def _cmd_processes(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from aperture_fab.config.config import parse_toml, resolve
     from aperture_fab.fabrication.part import make_part
-    from aperture_fab.io.files import output_folder
-    from aperture_fab.io.formats import PART_FORMATS
+    from aperture_fab.io.files import output_folder, write_atomic
+    from aperture_fab.io.formats import PART_FORMATS, part_files
     from aperture_fab.io.manifest import refuse_overwrite
     from aperture_fab.pipeline.design_job import write_part
-    from aperture_fab.pipeline.saved import check_sources
+    from aperture_fab.pipeline.saved import check_sources, read_design
 
     config_path = args.config or args.design.parent / "design.toml"
-    try:
-        data = np.load(args.design)
-        open_fraction = np.asarray(data["open_fraction"], dtype=np.float64)
-    except (OSError, KeyError, ValueError) as err:
-        raise ValueError(f"{args.design}: not a design.npz written by `aperture-fab design` "
-                         f"({err}).") from err
+    named = _part_out(args.out, tuple(s for f in PART_FORMATS.values() for s in f.suffixes))
+    open_fraction = read_design(args.design).open_fraction  # checked: a whole file, 0..1
     try:
         text = config_path.read_text()
     except OSError as err:
@@ -187,17 +323,24 @@ def _cmd_export(args: argparse.Namespace) -> int:
                      file_source=str(config_path))
     check_sources(config_path, args.design, "design")
     fabrication = _fabrication(args, config.extra)  # the process design.toml records, or --process
-    folder = output_folder(args.out)
-    named = [f for f in PART_FORMATS.values() if args.out.suffix.lower() in f.suffixes]
-    formats = ((named[0].name,) if named else
+    # An --out that names a part file writes that one file, under the name given (its folder
+    # is its parent); any other --out is a folder that gets every format.
+    folder = output_folder(args.out.parent if named else args.out)
+    formats = ((named.name,) if named else
                tuple(name for name in PART_FORMATS if name != "step" or fabrication.step))
-    refuse_overwrite(folder, [PART_FORMATS[name].file_name for name in formats] + [args.out.name])
+    refuse_overwrite(folder, [args.out.name] if named else
+                     [PART_FORMATS[name].file_name for name in formats])
     part = make_part(open_fraction, config.scene, fabrication)
-    written = write_part(folder, part, fabrication, formats, progress=not args.quiet)
-    if named and args.out.name != named[0].file_name:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        written[0].replace(args.out)
-        written[0] = args.out
+    args.output.stage(f"writing {', '.join(formats)} for {part.layout.count} holes")
+    if named:
+        # Written straight under the name given: a rename afterwards could replace a file of
+        # the standard name (plate.stl) that a design left in the same folder.
+        data = part_files(part, formats, fabrication)[named.file_name]
+        write_atomic(args.out, data)
+        written = [args.out]
+    else:
+        written = write_part(folder, part, fabrication, formats, progress=args.output.progress)
+    _report_forced(args.output, part, config, fabrication)
     print(f"{part.layout.count} holes, process {fabrication.process.name}: "
           + ", ".join(str(p) for p in written))
     return 0
@@ -251,18 +394,35 @@ def _cmd_design(args: argparse.Namespace) -> int:
     validation = None if args.no_validate else validation_settings(
         config.extra, {"tolerance_samples": args.tolerance_samples,
                        "mesh_samples": args.mesh_samples})
+    from aperture_fab.io.formats import PART_SUFFIXES
+
+    output: Output = args.output
+    named = _part_out(args.out, PART_SUFFIXES)
     folder = output_folder(args.out)
+    output.stage(f"design: {config.optimizer.iterations} iterations, then the part"
+                 + ("" if validation is None else " and its validation")
+                 + f", into {folder}/")
     try:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
-                            validation=validation, resume=args.resume, progress=not args.quiet,
+                            validation=validation, resume=args.resume, progress=output.progress,
                             command=args.command_line)
     except Interrupted as stop:
-        print(f"\ninterrupted at iteration {stop.state['iteration']}; checkpoint saved in "
-              f"{folder}. Continue with the same command and --resume.", file=sys.stderr)
-        return 130
+        output.interrupted(f"at iteration {stop.state['iteration']} (Ctrl-C); checkpoint saved in "
+                           f"{folder}. Continue with the same command and --resume.")
+        return EXIT_INTERRUPTED
     m = result.metrics
     print(f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
           f"stopped: {result.design.stopped})")
+    output.timings(result.timings_s)
+    if named is not None and args.out.name != named.file_name:
+        # A design folder's files have fixed names (validate and export find them by name).
+        output.warn(f"--out {args.out}: the part is written as {folder / named.file_name}, the "
+                    "design folder's fixed name; for another name run `aperture-fab export "
+                    f"{folder / 'design.npz'} --out {args.out}`.")
+    if result.part is not None:
+        _report_forced(output, result.part, config, fabrication)
+    if output.quiet:
+        return EXIT_OK
     _print_eye_distribution(m, result.names, validated=validation is not None)
     nominal = [v for v in m if v != "eye_distribution"]
     print("PSNR after gain (dB), nominal eye position:")
@@ -272,11 +432,15 @@ def _cmd_design(args: argparse.Namespace) -> int:
         print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in nominal))
     if result.part is not None:
         layout = result.part.layout
+        if fabrication.force:  # nothing was resolved: the warning above counts what breaks
+            print(f"part: {layout.count} holes as designed (--force); "
+                  f"{result.part.report.face_count} triangles, watertight")
+            return EXIT_OK
         print(f"part: {layout.count} holes, {len(layout.violations)} rule violation(s) resolved; "
               f"{result.part.report.face_count} triangles, watertight")
         for v in layout.violations[:10]:
             print(f"  {v.rule}: {v.resolution}")
-    return 0
+    return EXIT_OK
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -285,11 +449,15 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
                           process=args.process, keep_display=args.keep_display,
                           tolerance_samples=args.tolerance_samples,
-                          mesh_samples=args.mesh_samples, progress=not args.quiet)
+                          mesh_samples=args.mesh_samples, progress=args.output.progress,
+                          stage=args.output.stage)
     metrics = result.validation.metrics
     layout = result.part.layout
     print(f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "
           f"display content {result.display_source})")
+    args.output.timings(result.timings_s)
+    if args.output.quiet:
+        return EXIT_OK
     print("PSNR after gain (dB), nominal eye position:")
     print(f"  {'variant':<22}" + "".join(f"{name:>16}" for name in result.names))
     for variant, per_target in metrics.items():
@@ -400,10 +568,13 @@ See docs/tracking.md.
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from aperture_fab import __version__
+
     parser = argparse.ArgumentParser(
-        prog="aperture-fab", description=DESCRIPTION,
+        prog="aperture-fab", description=DESCRIPTION, epilog=EXIT_CODES_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"aperture-fab {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("design", help="optimize a plate for target images",
@@ -417,7 +588,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default outputs/design/plate.stl)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its checkpoint in the output folder")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_config_flags(p)
     _add_fabrication_flags(p)
     _add_validation_flags(p)
@@ -437,7 +607,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, metavar="FILE.toml",
                    help="the design's config (default: design.toml beside DESIGN.npz)")
     p.add_argument("--preset", help=argparse.SUPPRESS)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_fabrication_flags(p)
     p.set_defaults(func=_cmd_export)
 
@@ -461,7 +630,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Monte Carlo samples of the tolerance analysis (0 skips it)")
     p.add_argument("--mesh-samples", type=int, metavar="N",
                    help="rays per (view pixel, hole) pair when re-tracing the mesh (0 skips it)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("render", help="the view through a part for an eye position",
@@ -522,19 +690,87 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_presets)
     p = sub.add_parser("processes", help="list the fabrication processes and their rules")
     p.set_defaults(func=_cmd_processes)
+    for command in sub.choices.values():
+        _add_output_flags(command)
     return parser
 
 
+def _add_output_flags(parser: argparse.ArgumentParser) -> None:
+    """-q/--quiet and -v/--verbose, on every command (one that defines its own is left alone)."""
+    if "--quiet" in parser._option_string_actions:
+        return
+    group = parser.add_argument_group("output").add_mutually_exclusive_group()
+    group.add_argument("-q", "--quiet", action="store_true",
+                       help="print only errors and the final one-line result; no progress")
+    group.add_argument("-v", "--verbose", action="store_true",
+                       help="tracebacks for errors, and the time of each stage")
+
+
+def _exit_code(err: BaseException) -> int:
+    """EXIT_FAILED for a failure the tool judged (JUDGED_FAILURES), EXIT_CANNOT_WRITE for a
+    file system error, else EXIT_BAD_INPUT."""
+    for module, name in JUDGED_FAILURES:
+        loaded = sys.modules.get(module)  # not imported: the error cannot be one of its classes
+        if loaded is not None and isinstance(err, getattr(loaded, name)):
+            return EXIT_FAILED
+    if isinstance(err, OSError) and not isinstance(err, FileNotFoundError):
+        return EXIT_CANNOT_WRITE
+    return EXIT_BAD_INPUT
+
+
+def _os_error_message(err: OSError, args: argparse.Namespace) -> str:
+    """One line for a file the tool could not read or write: the file, why, and the fix."""
+    out = getattr(args, "out", None)
+    # write_atomic writes .NAME.<12 hex>.tmp and renames it: name the file the user asked for.
+    what = (TEMP_NAME.sub(r"\1", str(err.filename)) if err.filename
+            else f"an output of --out {out}" if out is not None else "a file")
+    why = err.strerror or str(err) or type(err).__name__
+    fix = OS_ERROR_FIXES.get(err.errno or 0, "check the path and its permissions, then try again")
+    return f"cannot write or read {what}: {why}; {fix}."
+
+
+def _show_warning(output: Output, default: Any) -> Any:
+    """A warnings.showwarning that prints the tool's own warnings as one line each (not with -q)
+    and leaves every other library's warning to `default`."""
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+             file: Any = None, line: str | None = None) -> None:
+        if filename.startswith(PACKAGE_DIR):
+            output.warn(str(message))
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    return show
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command; returns one of the EXIT_* codes (listed in EXIT_CODES_HELP)."""
+    import warnings
+
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # a usage error exits with EXIT_USAGE (argparse's 2)
     # Recorded in an output folder's manifest.json: how to re-run what wrote it.
     args.command_line = ["aperture-fab", *(sys.argv[1:] if argv is None else argv)]
+    output = Output(quiet=bool(getattr(args, "quiet", False)),
+                    verbose=bool(getattr(args, "verbose", False)),
+                    terminal=sys.stderr.isatty())
+    args.output = output
     try:
-        return int(args.func(args))
-    except (ValueError, TypeError, FileNotFoundError, FloatingPointError) as err:
-        print(f"aperture-fab: error: {err}", file=sys.stderr)
-        return 2
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning(output, warnings.showwarning)
+            return int(args.func(args))
+    except KeyboardInterrupt:
+        output.traceback()
+        output.interrupted(f"(Ctrl-C) during `{args.command}`; every file already written is "
+                           "whole (each is written completely or not at all). Run the command "
+                           "again to finish it.")
+        return EXIT_INTERRUPTED
+    except (ValueError, TypeError, OSError, FloatingPointError) as err:
+        output.traceback()
+        code = _exit_code(err)
+        output.error(_os_error_message(err, args) if isinstance(err, OSError)
+                     and code == EXIT_CANNOT_WRITE else str(err))
+        return code
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import aperture_fab.optimize.optimizer as optimize_module
-from aperture_fab.cli import OVERRIDES, main
+from aperture_fab.cli import EXIT_BAD_INPUT, OVERRIDES, main
 from aperture_fab.config.config import parse_toml, resolve
 from aperture_fab.config.presets import PRESET_DESCRIPTIONS, PRESETS
 
@@ -24,9 +24,10 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 VARIANTS = ("initial", "optimized", "open", "regular_pinholes")
 
 
-def design_args(target: Path, config: Path, out: Path, *flags: str) -> list[str]:
-    return ["design", str(target), "--config", str(config), "--out", str(out), "--quiet",
-            *flags]
+def design_args(target: Path, config: Path, out: Path, *flags: str, quiet: bool = True
+                ) -> list[str]:
+    return ["design", str(target), "--config", str(config), "--out", str(out),
+            *(["--quiet"] if quiet else []), *flags]
 
 
 def written_config(folder: Path) -> dict:
@@ -96,7 +97,7 @@ def test_design_writes_outputs_and_prints_the_psnr_table(
         tmp_path: Path, marker_png: Path, tiny_toml: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out" / "plate.stl"
-    assert main(design_args(marker_png, tiny_toml, out)) == 0
+    assert main(design_args(marker_png, tiny_toml, out, quiet=False)) == 0  # -q: one line
     folder = out.parent
     for name in ("design.npz", "design.toml", "design.json", "display_marker.png", "loss.png",
                  *(f"view_{v}_marker.png" for v in VARIANTS)):
@@ -193,75 +194,75 @@ def test_the_written_config_reruns_the_same_design(tmp_path: Path, marker_png: P
     (["--focus-mm", "near"], "--focus-mm"),
     (["--view-pixels", "0", "4"], "eye.view_pixels"),
 ])
-def test_a_bad_value_returns_two_naming_the_field(
+def test_a_bad_value_returns_three_naming_the_field(
         tmp_path: Path, marker_png: Path, tiny_toml: Path,
         capsys: pytest.CaptureFixture[str], flags: list[str], named: str) -> None:
     out = tmp_path / "out"
-    assert main(design_args(marker_png, tiny_toml, out, *flags)) == 2
+    assert main(design_args(marker_png, tiny_toml, out, *flags)) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert err.startswith("aperture-fab: error:")
     assert named in err
     assert not out.exists()  # refused before anything was written
 
 
-def test_a_missing_target_returns_two_naming_the_file(
+def test_a_missing_target_returns_three_naming_the_file(
         tmp_path: Path, tiny_toml: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "no such target.png"
-    assert main(design_args(missing, tiny_toml, tmp_path / "out")) == 2
+    assert main(design_args(missing, tiny_toml, tmp_path / "out")) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert str(missing) in err and "does not exist" in err
 
 
-def test_a_garbage_target_returns_two_naming_the_file(
+def test_a_garbage_target_returns_three_naming_the_file(
         tmp_path: Path, tiny_toml: Path, capsys: pytest.CaptureFixture[str]) -> None:
     garbage = tmp_path / "garbage.png"
     garbage.write_bytes(b"not a png" * 50)
-    assert main(design_args(garbage, tiny_toml, tmp_path / "out")) == 2
+    assert main(design_args(garbage, tiny_toml, tmp_path / "out")) == EXIT_BAD_INPUT
     assert str(garbage) in capsys.readouterr().err
 
 
-def test_an_unknown_preset_returns_two(tmp_path: Path, marker_png: Path, tiny_toml: Path,
+def test_an_unknown_preset_returns_three(tmp_path: Path, marker_png: Path, tiny_toml: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     argv = design_args(marker_png, tiny_toml, tmp_path / "out", "--preset", "near_eye")
-    assert main(argv) == 2
+    assert main(argv) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "'near_eye'" in err
     for name in PRESETS:
         assert name in err
 
 
-def test_a_missing_config_file_returns_two(tmp_path: Path, marker_png: Path,
+def test_a_missing_config_file_returns_three(tmp_path: Path, marker_png: Path,
                                            capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "nope.toml"
-    assert main(design_args(marker_png, missing, tmp_path / "out")) == 2
+    assert main(design_args(marker_png, missing, tmp_path / "out")) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert str(missing) in err and "cannot read" in err
 
 
-def test_a_config_syntax_error_returns_two_naming_file_and_line(
+def test_a_config_syntax_error_returns_three_naming_file_and_line(
         tmp_path: Path, marker_png: Path, capsys: pytest.CaptureFixture[str]) -> None:
     broken = tmp_path / "broken.toml"
     broken.write_text("[plate]\ngap_mm = 8.0\nhole_axis = straight\n")
-    assert main(design_args(marker_png, broken, tmp_path / "out")) == 2
+    assert main(design_args(marker_png, broken, tmp_path / "out")) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert str(broken) in err and "line 3" in err
 
 
-def test_a_config_with_an_unknown_key_returns_two(tmp_path: Path, marker_png: Path,
+def test_a_config_with_an_unknown_key_returns_three(tmp_path: Path, marker_png: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     typo = tmp_path / "typo.toml"
     typo.write_text("[plate]\ngap = 8.0\n")
-    assert main(design_args(marker_png, typo, tmp_path / "out")) == 2
+    assert main(design_args(marker_png, typo, tmp_path / "out")) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "'gap'" in err and "gap_mm" in err
 
 
-def test_an_output_under_a_regular_file_returns_two(
+def test_an_output_under_a_regular_file_returns_three(
         tmp_path: Path, marker_png: Path, tiny_toml: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
     blocker = tmp_path / "blocker"
     blocker.write_text("x")
-    assert main(design_args(marker_png, tiny_toml, blocker / "plate.stl")) == 2
+    assert main(design_args(marker_png, tiny_toml, blocker / "plate.stl")) == EXIT_BAD_INPUT
     assert "blocker" in capsys.readouterr().err
 
 
@@ -293,7 +294,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(
     assert json.loads((out / "design.json").read_text())["iterations"] == 8
     assert not (out / "checkpoint.pt").exists()
     # Resuming again has nothing to resume from.
-    assert main(design_args(marker_png, tiny_toml, out, "--resume")) == 2
+    assert main(design_args(marker_png, tiny_toml, out, "--resume")) == EXIT_BAD_INPUT
     assert "no checkpoint" in capsys.readouterr().err
 
 

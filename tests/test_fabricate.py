@@ -9,7 +9,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from aperture_fab.cli import main
+from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_FAILED, main
 from aperture_fab.config.config import resolve
 from aperture_fab.fabrication.mesh import check_mesh, mesh_volume_mm3
 from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
@@ -58,7 +58,7 @@ def test_unmakeable_design_is_refused_before_optimizing(tmp_path, capsys):
     flags = ["design", str(target), "--out", str(tmp_path / "out" / "plate.stl"), "--quiet",
              "--process", "fdm", "--cells", "16", "16", "--view-pixels", "12", "12",
              "--iterations", "2", "--device", "cpu", "--thickness-mm", "0.1"]
-    assert main(flags) == 2
+    assert main(flags) == EXIT_FAILED  # refused: the process cannot make it
     err = capsys.readouterr().err
     assert "fdm" in err and ("photomask" in err or "etched-foil" in err)
     assert not (tmp_path / "out" / "design.npz").exists()
@@ -106,7 +106,8 @@ def test_design_writes_every_part_file_and_export_rebuilds(tmp_path):
 
 
 def test_export_of_a_missing_design_is_a_clear_error(tmp_path, capsys):
-    assert main(["export", str(tmp_path / "nope.npz"), "--out", str(tmp_path / "x.stl")]) == 2
+    argv = ["export", str(tmp_path / "nope.npz"), "--out", str(tmp_path / "x.stl")]
+    assert main(argv) == EXIT_BAD_INPUT
     assert "nope.npz" in capsys.readouterr().err
 
 

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from aperture_fab.cli import main
+from aperture_fab.cli import EXIT_BAD_INPUT, main
 from aperture_fab.config.config import parse_toml, resolve
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.part import fabrication_settings
@@ -213,7 +213,7 @@ def test_an_stl_of_another_grid_is_refused_naming_the_file(
     code = main(["validate", str(copy / "plate.stl"), str(copy / "marker.png"), "--config",
                  str(config), *FAST])
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == EXIT_BAD_INPUT
     assert "plate.stl" in err and "4 x 4 cells" in err and "--config" in err
 
 
@@ -222,7 +222,7 @@ def test_the_number_of_targets_must_match_the_design(
     marker = str(copy / "marker.png")
     code = main(["validate", str(copy / "holes.csv"), marker, marker, *FAST])
     err = capsys.readouterr().err
-    assert code == 2 and "design.npz" in err and "1 target(s)" in err
+    assert code == EXIT_BAD_INPUT and "design.npz" in err and "1 target(s)" in err
 
 
 @pytest.mark.parametrize(("argv", "named"), [
@@ -234,12 +234,12 @@ def test_the_number_of_targets_must_match_the_design(
     (["render", "{d}/plate.stl", "--config", "{d}/none.toml"], "none.toml"),
     (["render", "{d}/plate.stl", "{d}/missing.png"], "missing.png"),
 ])
-def test_missing_or_wrong_files_exit_two_naming_the_file(
+def test_missing_or_wrong_files_exit_three_naming_the_file(
         designed: Path, argv: list[str], named: str,
         capsys: pytest.CaptureFixture[str]) -> None:
     code = main([a.format(d=designed) for a in argv])
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == EXIT_BAD_INPUT
     assert named in err
 
 
@@ -304,9 +304,9 @@ def test_render_through_the_mesh_follows_the_model(copy: Path) -> None:
 
 
 def test_render_flags_are_checked(copy: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["render", str(copy / "plate.stl"), "--eye", "1"]) == 2
+    assert main(["render", str(copy / "plate.stl"), "--eye", "1"]) == EXIT_BAD_INPUT
     assert "--eye '1'" in capsys.readouterr().err
-    assert main(["render", str(copy / "plate.stl"), "--target-index", "3"]) == 2
+    assert main(["render", str(copy / "plate.stl"), "--target-index", "3"]) == EXIT_BAD_INPUT
     assert "--target-index 3" in capsys.readouterr().err
-    assert main(["render", str(copy / "plate.stl"), "--focus", "near"]) == 2
+    assert main(["render", str(copy / "plate.stl"), "--focus", "near"]) == EXIT_BAD_INPUT
     assert "--focus 'near'" in capsys.readouterr().err

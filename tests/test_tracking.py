@@ -12,7 +12,7 @@ import pytest
 import torch
 from PIL import Image
 
-from aperture_fab.cli import main
+from aperture_fab.cli import EXIT_BAD_INPUT, main
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
@@ -203,13 +203,13 @@ def test_display_takes_every_kind_of_part(designed: Path, tmp_path: Path, part: 
     (["{d}/holes.csv", "{d}/marker.png", "--eye", "0,0", "--pupil", "4", "--config",
       "{d}/none.toml"], "none.toml"),
 ])
-def test_display_bad_inputs_exit_two_with_a_clear_message(
+def test_display_bad_inputs_exit_three_with_a_clear_message(
         designed: Path, tmp_path: Path, argv: list[str], named: str,
         capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "frame.png"
     code = main(["display", *(a.format(d=designed) for a in argv), "--out", str(out)])
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == EXIT_BAD_INPUT
     assert named in err, err
     assert not out.exists()
 

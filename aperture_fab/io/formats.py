@@ -111,18 +111,25 @@ def stl_bytes(mesh: PlateMesh) -> bytes:
 
 
 def read_stl(data: bytes) -> PlateMesh:
-    """Parse binary STL, merging vertices whose float32 coordinates are exactly equal."""
-    if len(data) < STL_HEADER_BYTES + 4:
-        raise ValueError(f"STL data has {len(data)} bytes; a binary STL has at least 84.")
-    count = int(np.frombuffer(data, dtype="<u4", count=1, offset=STL_HEADER_BYTES)[0])
+    """Parse binary or ASCII STL, merging vertices whose float32 coordinates are exactly equal
+    (ASCII coordinates are rounded to float32 first, as a binary STL stores them)."""
+    count = (int(np.frombuffer(data, dtype="<u4", count=1, offset=STL_HEADER_BYTES)[0])
+             if len(data) >= STL_HEADER_BYTES + 4 else -1)
     expected = STL_HEADER_BYTES + 4 + count * STL_RECORD.itemsize
-    if len(data) != expected:
+    if len(data) != expected and data.lstrip()[:5].lower() == b"solid":
+        # A binary STL's header may also start with "solid"; the size decides.
+        corners = _ascii_stl_corners(data)
+    elif count < 0:
+        raise ValueError(f"STL data has {len(data)} bytes; a binary STL has at least 84.")
+    elif len(data) != expected:
         raise ValueError(
             f"STL data has {len(data)} bytes but its header promises {count} facets "
-            f"({expected} bytes); it is truncated or ASCII STL, which read_stl does not read."
+            f"({expected} bytes); it is truncated. Export the mesh again as STL."
         )
-    records = np.frombuffer(data, dtype=STL_RECORD, count=count, offset=STL_HEADER_BYTES + 4)
-    corners = records["vertices"].reshape(-1, 3)
+    else:
+        records = np.frombuffer(data, dtype=STL_RECORD, count=count,
+                                offset=STL_HEADER_BYTES + 4)
+        corners = records["vertices"].reshape(-1, 3)
     if not np.all(np.isfinite(corners)):
         raise ValueError("STL data has non-finite vertex coordinates.")
     # Adding 0 turns -0.0 into 0.0, so equal numbers have equal bits.
@@ -135,6 +142,26 @@ def read_stl(data: bytes) -> PlateMesh:
     inverse[order] = np.cumsum(first) - 1
     vertices = corners[order[first]].astype(np.float64)
     return PlateMesh(vertices=vertices, faces=inverse.reshape(-1, 3))
+
+
+def _ascii_stl_corners(data: bytes) -> np.ndarray:
+    """The facet corners (3K, 3) float32 of an ASCII STL ("solid ... facet ... vertex x y z")."""
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError:
+        raise ValueError("STL data starts with 'solid' but is neither ASCII STL nor a binary "
+                         "STL of the size its header gives; export the mesh again.") from None
+    rows = [line.split()[1:] for line in text.splitlines()
+            if line.strip().lower().startswith("vertex")]
+    try:
+        corners = np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise ValueError("ASCII STL has a vertex line without three numbers; export the mesh "
+                         "again.") from None
+    if not rows or corners.shape[1:] != (3,) or len(corners) % 3:
+        raise ValueError(f"ASCII STL has {len(rows)} vertex lines; a mesh needs three per facet "
+                         "and at least one facet. Export the mesh again.")
+    return corners.astype(np.float32)
 
 
 def _mm_text(value: float) -> str:

@@ -12,6 +12,7 @@ import io
 import struct
 import warnings
 import zlib
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -21,6 +22,8 @@ __all__ = [
     "MAX_IMAGE_PIXELS",
     "PngBits",
     "ResampleKernel",
+    "TargetWarning",
+    "check_target",
     "decode_image",
     "encode_png",
     "is_grey",
@@ -48,6 +51,17 @@ SRGB_GAMMA = 2.4
 #: Full scale of 8-bit and 16-bit samples.
 MAX_8BIT = 255
 MAX_16BIT = 65535
+
+#: Smallest target side in pixels: a smaller one holds no picture to resample.
+MIN_TARGET_PIXELS = 8
+#: A target whose aspect ratio differs from the display's by more than this share is stretched
+#: visibly (3 %: a circle becomes an ellipse one can see), so the user is warned.
+ASPECT_TOLERANCE = 0.03
+
+
+class TargetWarning(UserWarning):
+    """A target that is used, but not as given (stretched to the display's aspect)."""
+
 
 #: Channels that differ by no more than this count as equal in is_grey.
 GREY_TOLERANCE = 1e-9
@@ -325,14 +339,42 @@ def is_grey(image: np.ndarray) -> bool:
                 and np.all(np.abs(source[0] - source[2]) <= GREY_TOLERANCE))
 
 
+def check_target(image: np.ndarray, name: str, display_pixels: tuple[int, int]) -> None:
+    """Refuse a target that cannot be judged, and warn (TargetWarning) when it will be
+    stretched. image: (C, H, W) linear light; display_pixels: (W, H)."""
+    height, width = image.shape[1:]
+    if min(height, width) < MIN_TARGET_PIXELS:
+        raise ValueError(f"target image {name} is {width} x {height} pixels; allowed: at least "
+                         f"{MIN_TARGET_PIXELS} pixels per side (it is resampled onto the view and "
+                         "display grids). Give a larger image.")
+    # PSNR after the least-squares gain judges the shape of the light, and a black target has
+    # none: the gain is 0 and the error 0 for any plate, a perfect score (the 200 dB floor)
+    # that means nothing. Refused, as the figure of merit is undefined. A constant grey
+    # target is kept: its PSNR honestly measures how evenly the plate lights the view.
+    if not np.any(image > 0):
+        raise ValueError(f"target image {name} is black everywhere (no light); a target must "
+                         "show something to match. Give the image of what the eye should see.")
+    shown = display_pixels[0] / display_pixels[1]
+    aspect = width / height
+    if abs(aspect / shown - 1) > ASPECT_TOLERANCE:
+        warnings.warn(f"target image {name} is {width} x {height} pixels (aspect {aspect:.3g}) "
+                      f"but the display is {display_pixels[0]} x {display_pixels[1]} (aspect "
+                      f"{shown:.3g}); it will be stretched to fit. Crop or pad it to the "
+                      "display's aspect to avoid that.", TargetWarning, stacklevel=3)
+
+
 def prepare_targets(images: list[np.ndarray], view_pixels: tuple[int, int],
-                    display_pixels: tuple[int, int], channels: int | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Targets on the view grid (T, C, ny, nx) and on the display grid (T, C, H, W), float64.
+                    display_pixels: tuple[int, int], channels: int | None = None,
+                    names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Targets on the view grid (T, C, ny, nx) and on the display grid (T, C, H, W), float64,
+    each checked first (check_target; names: how errors name them, default by number).
 
     images: (C, H, W) linear light. C is 1 when every target is grey, else 3; `channels` fixes
     it when a saved design's display already has a channel count.
     """
+    for n, image in enumerate(images):
+        check_target(image, repr(names[n]) if names is not None else f"number {n + 1}",
+                     display_pixels)
     grey = all(is_grey(im) for im in images)
     want = channels if channels is not None else (1 if grey else 3)
     if want == 1 and not grey:

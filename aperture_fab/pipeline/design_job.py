@@ -10,6 +10,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import pickle
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -114,7 +115,8 @@ def design(
             if settings.quantize_share > 0:
                 made = made_sizes(scene.plate, fabrication.process, scene.mid_plane_distance_mm)
         bounds = design_bounds(scene, fabrication.process)
-    targets, shown = prepare_targets(list(images), scene.eye.view_pixels, scene.display.pixels)
+    targets, shown = prepare_targets(list(images), scene.eye.view_pixels, scene.display.pixels,
+                                     names=names)
     timings = {}
     start = time.perf_counter()
     result = optimize(scene, targets, shown, settings, bounds=bounds, made=made, state=state,
@@ -236,7 +238,11 @@ def _resume_state(checkpoint: Path, inputs: dict[str, str], paths: Sequence[Path
     naming the input that changed."""
     if not checkpoint.exists():
         raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
-    saved = torch.load(checkpoint, weights_only=False)
+    try:
+        saved = torch.load(checkpoint, weights_only=False)
+    except (RuntimeError, EOFError, pickle.UnpicklingError) as err:  # truncated or not ours
+        raise ValueError(f"--resume: {checkpoint} cannot be read ({err}); it is truncated or "
+                         "not a checkpoint. Delete it and run without --resume.") from err
     before = saved.get("inputs")
     if before is None:
         raise ValueError(f"--resume: {checkpoint} was made by an older aperture-fab that did "

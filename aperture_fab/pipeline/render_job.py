@@ -37,6 +37,8 @@ __all__ = ["DisplayFrame", "RenderedView", "run_display", "run_render"]
 
 #: A view without a target is scaled so that this percentile of its values maps to 1.
 RENDER_PERCENTILE = 99.5
+#: The suffix of the images render and display write.
+PNG_SUFFIX = ".png"
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,18 @@ class RenderedView:
     light_efficiency: float
     eye_mm: tuple[float, float]
     path: Path
+
+
+def _png_out(path: Path) -> Path:
+    """An --out for a PNG, checked before any work: a file name ending in .png."""
+    if path.is_dir():
+        raise ValueError(f"--out {path} is a folder; give a PNG file name in it, e.g. --out "
+                         f"{path / 'view.png'}.")
+    if path.suffix.lower() != PNG_SUFFIX:
+        raise ValueError(f"--out {path}: {path.suffix or 'no suffix'} is not allowed; the image "
+                         f"is written as a PNG, so give a name ending in {PNG_SUFFIX}, e.g. "
+                         f"--out {path.with_suffix(PNG_SUFFIX)}.")
+    return path
 
 
 def _view_scene(scene: Scene, eye_mm: tuple[float, float] | None, pupil_mm: float | None,
@@ -100,6 +114,7 @@ def run_render(
     beside the part.
     """
     kind = part_kind(part)
+    path = _png_out(out if out is not None else part.parent / f"view_{part.stem}.png")
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
     fabrication = fabrication_settings(config.extra, {"process": process})
@@ -111,7 +126,8 @@ def run_render(
         images, _ = load_targets([target])
         channels = None if design is None else design.displays.shape[1]
         view_targets, on_displays = prepare_targets(
-            images, config.scene.eye.view_pixels, config.scene.display.pixels, channels)
+            images, config.scene.eye.view_pixels, config.scene.display.pixels, channels,
+            names=[str(target)])
         view_target, on_display = view_targets[0], on_displays[0]
     if config.optimizer.display == "target" and on_display is not None:
         display = on_display
@@ -129,7 +145,7 @@ def run_render(
     dtype = torch_dtype(config.optimizer.precision)
     display_t = torch.as_tensor(display, dtype=dtype, device=device)
     if mesh:
-        from aperture_fab.optics.retrace import trace_mesh_view
+        from aperture_fab.validation.retrace import trace_mesh_view
 
         view = trace_mesh_view(loaded.mesh, scene, display, position, mesh_samples).view
     else:
@@ -140,7 +156,18 @@ def run_render(
             ).cpu().double().numpy()
     with torch.no_grad():
         open_level = float(render_open(scene, display_t, position).mean())
-    efficiency = float(view.mean() / open_level) if open_level > 0 else math.nan
+    if not open_level > 0:
+        # Not even the open display reaches the pupil: any view here is black, its light
+        # efficiency 0 / 0. Say so rather than print nan.
+        x, y = scene.eye.positions_mm[1]
+        eye = config.scene.eye
+        nominal = eye.positions_mm[0]
+        raise ValueError(
+            f"--eye {x:g},{y:g}: the eye sees no light from the display at that position (it "
+            f"is outside the cone of light the display sends through the plate). The config's "
+            f"eye is at ({nominal[0]:g}, {nominal[1]:g}) mm with an eyebox of "
+            f"{eye.eyebox_mm[0]:g} x {eye.eyebox_mm[1]:g} mm around it; give an --eye near it.")
+    efficiency = float(view.mean() / open_level)
     psnr = None
     if view_target is not None:
         scale = gain(view, view_target)
@@ -148,7 +175,6 @@ def run_render(
     else:
         level = float(np.percentile(view, RENDER_PERCENTILE))
         scale = 1.0 / level if level > 0 else 1.0
-    path = out if out is not None else part.parent / f"view_{part.stem}.png"
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -238,6 +264,7 @@ def run_display(
     from aperture_fab.optimize.tracking import DEFAULT_ITERATIONS, tracked_views
 
     kind = part_kind(part)
+    path = _png_out(out)
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
     scene = config.scene
@@ -255,7 +282,7 @@ def run_display(
     images, _ = load_targets([target])
     view_targets, on_displays = prepare_targets(
         images, scene.eye.view_pixels, scene.display.pixels,
-        None if design is None else design.displays.shape[1])
+        None if design is None else design.displays.shape[1], names=[str(target)])
     if config.optimizer.display == "target" or design is None:
         start = on_displays[0]
     else:
@@ -272,7 +299,6 @@ def run_display(
     solved = tracked_views(renderer, a, view_targets[0], state, start, iterations)
     solve_s = time.perf_counter() - began
     frame = solved.displays[0].detach().cpu().double().numpy()
-    path = out
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

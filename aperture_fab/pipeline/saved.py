@@ -8,6 +8,8 @@ with the broken rules listed (`load_part`).
 from __future__ import annotations
 
 import math
+import zipfile
+import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -102,12 +104,20 @@ def read_design(path: Path) -> SavedDesign:
                        if "loss_history" in data.files else np.zeros(0))
             names = (tuple(str(n) for n in data["names"]) if "names" in data.files
                      else tuple(f"target{i}" for i in range(len(displays))))
-    except (OSError, KeyError, ValueError) as err:
-        raise ValueError(f"{path}: not a design.npz written by `aperture-fab design` ({err}); "
-                         "give the design folder's design.npz.") from err
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        # A truncated file (an interrupted copy) fails in zipfile or zlib, not with OSError.
+        raise ValueError(f"{path}: not a design.npz written by `aperture-fab design`, or "
+                         f"truncated ({type(err).__name__}: {err}); give the design folder's "
+                         "design.npz, or design again.") from err
     if open_fraction.ndim != 2 or displays.ndim != 4:
         raise ValueError(f"{path}: open_fraction has shape {open_fraction.shape} and displays "
                          f"{displays.shape}; expected (rows, cols) and (T, C, H, W).")
+    if open_fraction.size and not (np.all(np.isfinite(open_fraction))
+                                   and 0 <= open_fraction.min() and open_fraction.max() <= 1):
+        # Refused, not clipped: values out of range mean the file was edited or is not ours.
+        raise ValueError(f"{path}: open_fraction holds values from {np.nanmin(open_fraction):g} "
+                         f"to {np.nanmax(open_fraction):g}; allowed: finite values from 0 to 1 "
+                         "(the open share of each cell). Fix the array, or design again.")
     return SavedDesign(path, open_fraction, displays, built, history, names)
 
 
@@ -210,7 +220,10 @@ def load_part(path: Path, kind: PartKind, config: Config, fabrication: Fabricati
             raise ValueError(f"{path}: the holes cannot be built into a plate ({err}); keep "
                              "every hole inside its cell.") from err
     else:
-        mesh = read_stl(path.read_bytes())
+        try:
+            mesh = read_stl(path.read_bytes())
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from err  # read_stl sees bytes, not the name
         layout = _layout_from_mesh(mesh, path, scene, config_path)
         part = Part(layout, mesh, check_mesh(mesh), 0.0)
     broken = layout_violations(part.layout, scene.plate, process)

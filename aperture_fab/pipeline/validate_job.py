@@ -9,7 +9,7 @@ lies beside the config.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -48,6 +48,7 @@ class RecheckResult:
     folder: where report.json, report.html, views.npz and display_<target>.png were written.
     kind: the part's kind. names: (T,) target names. part: the part checked (layout, mesh).
     validation: views and metrics. display_source: where the display content came from.
+    timings_s: seconds per stage.
     """
 
     folder: Path
@@ -56,6 +57,7 @@ class RecheckResult:
     part: Part
     validation: Validation
     display_source: DisplaySource
+    timings_s: dict[str, float]
 
 
 def _display_content(config: Config, targets: np.ndarray, on_display: np.ndarray,
@@ -94,6 +96,7 @@ def run_validate(
     tolerance_samples: int | None = None,
     mesh_samples: int | None = None,
     progress: bool = False,
+    stage: Callable[[str], None] | None = None,
 ) -> RecheckResult:
     """The `aperture-fab validate` job: validate a part (design.npz, holes.csv or STL) for the
     config and targets; write report.json, report.html, views.npz and display_<target>.png
@@ -102,6 +105,7 @@ def run_validate(
     config_path: default design.toml beside the part. process: overrides the config's
     [process] name. keep_display: show design.npz's display content unchanged instead of
     re-fitting it to the part. tolerance_samples, mesh_samples: override [validation].
+    stage: called with a line as each stage starts (for logs, where there are no progress bars).
     """
     from aperture_fab.validation.evidence import assemble
     from aperture_fab.validation.report import report_json
@@ -124,18 +128,29 @@ def run_validate(
                 f"({', '.join(design.names)}) but {len(images)} were given; give "
                 f"{len(design.displays)} target(s) in the design's order.")
     loaded = load_part(part, kind, config, fabrication, config_path)
+    if kind != "design" and loaded.layout.count == 0:
+        # A cube, a blank plate or an empty table: validating it would "pass" with a black view.
+        raise ValueError(
+            f"no holes found in {part}: this is not a plate of the config's grid "
+            f"({config.scene.plate.cells[0]} x {config.scene.plate.cells[1]} cells, from "
+            f"{config_path}). Give the part the design wrote (plate.stl or holes.csv), or the "
+            "config it was made with (--config).")
     folder = output_folder(out if out is not None else part.parent / f"validate_{part.stem}")
     view_targets, on_display = prepare_targets(
         images, config.scene.eye.view_pixels, config.scene.display.pixels,
-        None if design is None else design.displays.shape[1])
+        None if design is None else design.displays.shape[1], names=[str(t) for t in targets])
     as_built = layout_fractions(loaded.layout, fabrication.process.radius_bias_mm)
     timings = {"load_s": time.perf_counter() - start}
     start = time.perf_counter()
+    if stage is not None and not keep_display:
+        stage(f"validate: fitting the display content to the part's {loaded.layout.count} holes")
     designed, shown, fit_history, source = _display_content(
         config, view_targets, on_display, as_built, design, keep_display, progress)
     timings["fit_display_s"] = time.perf_counter() - start
     open_fraction = (design.open_fraction if design is not None
                      else layout_fractions(loaded.layout))
+    if stage is not None:
+        stage("validate: the part as built, its tolerances, the mesh and diffraction")
     checked = validate(config, view_targets, designed, open_fraction, loaded,
                        fabrication.process, tuple(names), settings, loaded.mesh,
                        built_displays=shown)
@@ -156,4 +171,5 @@ def run_validate(
     write_atomic(folder / "report.json", report_json(report))
     for name, content in zip(names, shown, strict=True):
         write_atomic(folder / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
-    return RecheckResult(folder, kind, tuple(names), loaded, checked, source)
+    return RecheckResult(folder, kind, tuple(names), loaded, checked, source,
+                         dict(report["timings_s"]))
