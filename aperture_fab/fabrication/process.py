@@ -44,6 +44,12 @@ MSLA_PIXEL_MM = 0.022
 MIN_HOLE_PIXELS = 4
 #: Thinnest web between holes, in pixels (estimate).
 MIN_WEB_PIXELS = 2
+#: Optical density taken for "opaque" material (metal sheet and foil): 10^-6 of the light gets
+#: through, which no display-and-eye measurement can tell from zero.
+OPAQUE_OPTICAL_DENSITY = 6.0
+#: Largest optical density a process may state.
+MAX_OPTICAL_DENSITY = 12.0
+
 #: Deepest resin hole per unit diameter (thickness / diameter): uncured resin must wash out of
 #: it (estimate).
 MAX_HOLE_ASPECT_RATIO = 4.0
@@ -84,6 +90,12 @@ class Process:
     min_hole_per_thickness: the smallest hole is also at least this times the thickness.
     min_web_per_thickness: the thinnest web is also at least this times the thickness.
     sources: where the numbers come from ("estimate" where nothing was found).
+    optical_density: the plate material's optical density at the process's typical plate
+        thickness: the solid plate passes 10^-optical_density of the light (the report weighs
+        that leakage against the light through the holes). Metal: opaque
+        (OPAQUE_OPTICAL_DENSITY). Override with [process] optical_density after measuring a
+        blank of the plate's thickness.
+    optical_density_note: where the optical density comes from ("estimate" when it is one).
     """
 
     name: str
@@ -99,6 +111,8 @@ class Process:
     min_hole_per_thickness: float = 0.0
     min_web_per_thickness: float = 0.0
     sources: tuple[str, ...] = ()
+    optical_density: float = OPAQUE_OPTICAL_DENSITY
+    optical_density_note: str = "not given: taken as opaque"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.name, str) and self.name.strip()):
@@ -156,6 +170,14 @@ class Process:
                       "Use 0 when the thinnest web does not depend on thickness.")
         if not (isinstance(self.sources, tuple) and all(isinstance(s, str) for s in self.sources)):
             raise TypeError(f"process.sources must be a tuple of strings, got {self.sources!r}")
+        _check_number("optical_density", self.optical_density, 0.0, MAX_OPTICAL_DENSITY,
+                      "Give the plate material's optical density at the plate's thickness "
+                      "(log10 of incident / transmitted light; metal: "
+                      f"{OPAQUE_OPTICAL_DENSITY:g}).",
+                      lo_inclusive=False)
+        if not isinstance(self.optical_density_note, str):
+            raise TypeError("process.optical_density_note must be a string, got "
+                            f"{self.optical_density_note!r}")
 
     def min_hole_for(self, thickness_mm: float) -> float:
         """Smallest hole diameter (mm) in a plate of this thickness."""
@@ -206,6 +228,12 @@ PROCESSES: dict[str, Process] = {
                 "Calibrated MSLA parts come out within about one pixel (blog.honzamrazek.cz "
                 "2022/06): radius sigma 0.008 mm, position sigma half a pixel (estimates)",
             ),
+            optical_density=2.0,
+            optical_density_note=(
+                "estimate for black pigmented resin about 0.3 mm thick (the near-eye plate): a "
+                "cure penetration depth of 0.05 to 0.1 mm, typical of pigmented resins, gives "
+                "OD 1.3 to 2.6 at 0.3 mm by Beer-Lambert; thinner plates leak more, thicker "
+                "less. Measure a printed blank and set [process] optical_density"),
         ),
         Process(
             name="fdm",
@@ -227,6 +255,11 @@ PROCESSES: dict[str, Process] = {
                 "Tolerance +-0.2 mm (prints.artrovogundam.com standard tier, arti90.com) read as "
                 "2 sigma -> radius sigma 0.05 mm, position sigma 0.1 mm",
             ),
+            optical_density=3.0,
+            optical_density_note=(
+                "estimate for black PLA about 1 mm thick (carbon-black filled; thin walls glow "
+                "against a bright panel). Measure a printed blank and set [process] "
+                "optical_density"),
         ),
         Process(
             name="laser",
@@ -247,6 +280,10 @@ PROCESSES: dict[str, Process] = {
                 "0.025 mm, position sigma 0.05 mm (estimate from it)",
                 "Thickness range 0.1-3 mm: estimate",
             ),
+            optical_density=OPAQUE_OPTICAL_DENSITY,
+            optical_density_note=(
+                "metal: opaque. Black acrylic (CO2 laser) transmits more: set [process] "
+                "optical_density from its datasheet"),
         ),
         Process(
             name="etched-foil",
@@ -268,6 +305,8 @@ PROCESSES: dict[str, Process] = {
                 "(2 sigma on a diameter at T about 0.2 mm)",
                 "Thickness range narrowed to 0.025-0.5 mm for pinhole plates (estimate)",
             ),
+            optical_density=OPAQUE_OPTICAL_DENSITY,
+            optical_density_note="metal: opaque",
         ),
         Process(
             name="photomask",
@@ -284,11 +323,21 @@ PROCESSES: dict[str, Process] = {
                 "layer is the emulsion, so 0.005-0.25 mm are accepted",
                 "Radius and position sigma: estimates (polyester has low dimensional stability)",
             ),
+            optical_density=4.0,
+            optical_density_note=(
+                "silver-halide film emulsion: maximum density about 4 (typical of phototooling "
+                "film; estimate, check the bureau's datasheet). A chrome-on-glass mask is "
+                "about 3"),
         ),
     )
 }
 
 _TUPLE_FIELDS = ("thickness_range_mm", "hole_sizes_mm", "sources")
+#: How the report uses a process's optical density, for `aperture-fab processes`.
+LEAKAGE_MODEL = (
+    "light through the solid plate, as a share of the light through the holes: "
+    "10^-OD x (1 - open share of the plate) / light efficiency (a uniform veil; neglects "
+    "scatter off the hole walls, reflections and the display's own black level)")
 
 
 def resolve_process(name: str, overrides: Mapping[str, Any] | None = None) -> Process:
@@ -345,6 +394,8 @@ def process_summary(p: Process) -> str:
         f"  hole sizes:    {sizes}",
         f"  tolerances:    radius bias {p.radius_bias_mm:+g} mm, radius sigma "
         f"{p.radius_sigma_mm:g} mm, position sigma {p.position_sigma_mm:g} mm",
+        f"  optical density: {p.optical_density:g} ({p.optical_density_note})",
+        f"  leakage model:   {LEAKAGE_MODEL}",
     ]
     lines += [f"  source: {s}" for s in p.sources]
     return "\n".join(lines)
