@@ -513,8 +513,9 @@ def _cmd_display(args: argparse.Namespace) -> int:
     focus_text = "infinity" if frame.focus_mm is None else f"{frame.focus_mm:g} mm"
     print(f"wrote {frame.path}: {width} x {height} display frame for the eye at ({x:g}, {y:g}) "
           f"mm, pupil {frame.pupil_mm:g} mm, focus {focus_text}")
-    print(f"PSNR after gain: {frame.start_psnr_db:.2f} dB untracked -> {frame.psnr_db:.2f} dB "
-          f"tracked ({frame.iterations} iterations, solved in {frame.solve_s:.2f} s)")
+    args.output.detail(f"PSNR after gain: {frame.start_psnr_db:.2f} dB untracked -> "
+                       f"{frame.psnr_db:.2f} dB tracked ({frame.iterations} iterations, solved "
+                       f"in {frame.solve_s:.2f} s)")
     return 0
 
 
