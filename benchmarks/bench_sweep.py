@@ -89,7 +89,8 @@ def run_once(sweep: Path, out: Path, workers: int) -> dict[str, float]:
     total_s = time.perf_counter() - start
     ok = sum(r["status"] == "ok" for r in outcome.records.values())
     if ok != len(outcome.points):
-        raise RuntimeError(f"{len(outcome.points) - ok} point(s) failed; see {out}")
+        error = next(r["error"] for r in outcome.records.values() if r["status"] != "ok")
+        raise RuntimeError(f"{len(outcome.points) - ok} point(s) failed, e.g.: {error}")
     points_s = marks[-1] - marks[0]  # from "started a local Ray instance" to the last point
     seconds = [r["seconds"] for r in outcome.records.values()]
     cpu = [r["cpu_seconds"] for r in outcome.records.values()]
