@@ -450,7 +450,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                           process=args.process, keep_display=args.keep_display,
                           tolerance_samples=args.tolerance_samples,
                           mesh_samples=args.mesh_samples, progress=args.output.progress,
-                          stage=args.output.stage)
+                          stage=args.output.stage, command=args.command_line)
     metrics = result.validation.metrics
     layout = result.part.layout
     print(f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "

@@ -169,6 +169,20 @@ def test_a_hole_table_edited_by_hand_may_be_validated_in_place(folder: Path) -> 
                  str(out), "--keep-display", "--quiet", *FAST_VALIDATION]) == 0
 
 
+def test_validate_publishes_its_own_set_and_refuses_a_design_folder(
+        folder: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = folder.parent / "validated"
+    assert main(["validate", str(folder / "plate.stl"), str(folder / "marker.png"), "--out",
+                 str(out), "--quiet", *FAST_VALIDATION]) == 0
+    check_folder(out)  # report, views and display content, with their manifest
+    assert set(manifest_files(out)) >= {"report.json", "report.html", "views.npz"}
+    before = snapshot(folder)
+    assert main(["validate", str(folder / "plate.stl"), str(folder / "marker.png"), "--out",
+                 str(folder), "--quiet", *FAST_VALIDATION]) != 0
+    assert "holds a design" in capsys.readouterr().err
+    assert snapshot(folder) == before
+
+
 def test_export_refuses_to_overwrite_a_published_set(
         folder: Path, capsys: pytest.CaptureFixture[str]) -> None:
     before = snapshot(folder)

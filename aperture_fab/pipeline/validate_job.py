@@ -19,7 +19,9 @@ import numpy as np
 from aperture_fab.config.config import Config
 from aperture_fab.fabrication.part import Part, fabrication_settings
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.formats import PART_FORMATS
 from aperture_fab.io.images import encode_png, prepare_targets
+from aperture_fab.io.manifest import publish, staging
 from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.pipeline.design_job import FIT_SHARE, MIN_FIT_ITERATIONS
 from aperture_fab.pipeline.saved import (
@@ -37,6 +39,8 @@ from aperture_fab.validation.validate import Validation, layout_fractions, valid
 
 __all__ = ["DisplaySource", "RecheckResult", "run_validate"]
 
+#: The command a manifest names when the Python API, not the command line, ran the job.
+VALIDATE_COMMAND = ("python", "-c", "aperture_fab.pipeline.validate_job.run_validate(...)")
 #: Display content: fitted to the part, kept from the design, or the targets themselves.
 DisplaySource = Literal["fitted", "kept", "targets"]
 
@@ -85,6 +89,19 @@ def _display_content(config: Config, targets: np.ndarray, on_display: np.ndarray
     return designed, fitted, history, "fitted"
 
 
+def _refuse_design_folder(folder: Path) -> None:
+    """validate publishes its report as a set of its own (with its manifest, replacing the tool
+    files it did not write): in a design's folder that would replace the design's report and
+    remove its part files."""
+    design_files = ("design.toml", "design.npz", *(f.file_name for f in PART_FORMATS.values()))
+    found = [name for name in design_files if (folder / name).exists()]
+    if found:
+        raise ValueError(
+            f"--out {folder} holds a design ({', '.join(found[:3])}); validate writes its report "
+            "as a set of its own there. Give a new folder (the default is validate_<part> "
+            "beside the part).")
+
+
 def run_validate(
     part: Path,
     targets: Sequence[Path],
@@ -97,6 +114,7 @@ def run_validate(
     mesh_samples: int | None = None,
     progress: bool = False,
     stage: Callable[[str], None] | None = None,
+    command: Sequence[str] | None = None,
 ) -> RecheckResult:
     """The `aperture-fab validate` job: validate a part (design.npz, holes.csv or STL) for the
     config and targets; write report.json, report.html, views.npz and display_<target>.png
@@ -136,6 +154,7 @@ def run_validate(
             f"{config_path}). Give the part the design wrote (plate.stl or holes.csv), or the "
             "config it was made with (--config).")
     folder = output_folder(out if out is not None else part.parent / f"validate_{part.stem}")
+    _refuse_design_folder(folder)
     view_targets, on_display = prepare_targets(
         images, config.scene.eye.view_pixels, config.scene.display.pixels,
         None if design is None else design.displays.shape[1], names=[str(t) for t in targets])
@@ -166,10 +185,12 @@ def run_validate(
     report["checked_part"] = {"path": str(part), "kind": kind, "config": str(config_path),
                               "display": source,
                               "design": None if design is None else str(design.path)}
-    write_atomic(folder / "views.npz", evidence.views_npz)
-    write_atomic(folder / "report.html", evidence.html)
-    write_atomic(folder / "report.json", report_json(report))
-    for name, content in zip(names, shown, strict=True):
-        write_atomic(folder / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
+    with staging(folder) as staged:
+        write_atomic(staged / "views.npz", evidence.views_npz)
+        write_atomic(staged / "report.html", evidence.html)
+        write_atomic(staged / "report.json", report_json(report))
+        for name, content in zip(names, shown, strict=True):
+            write_atomic(staged / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
+        publish(staged, folder, command if command is not None else VALIDATE_COMMAND)
     return RecheckResult(folder, kind, tuple(names), loaded, checked, source,
                          dict(report["timings_s"]))
