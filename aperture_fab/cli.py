@@ -471,6 +471,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_assembly(args: argparse.Namespace) -> int:
+    from aperture_fab.pipeline.assembly_job import run_assembly
+
+    path = run_assembly(args.design_folder, args.out)
+    print(f"wrote {path} (print it at 100 %; the guide is docs/assembly.md)")
+    return EXIT_OK
+
+
 def _pair_mm(text: str, flag: str) -> tuple[float, float]:
     try:
         x, y = (float(v) for v in text.split(","))
@@ -686,6 +694,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="FRAME.png",
                    help="PNG to write")
     p.set_defaults(func=_cmd_display)
+
+    p = sub.add_parser("assembly", help="the assembly sheet (HTML) of a design folder",
+                       description="Write the printable assembly sheet of a design: the plate "
+                       "drawing with its key, the frame, where and which way up the display "
+                       "image goes, the calibration coupon and the steps (docs/assembly.md).",
+                       epilog="example:\n  aperture-fab assembly outputs/x  # -> "
+                       "outputs/x/assembly.html",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("design_folder", type=Path, metavar="DESIGN_FOLDER",
+                   help="the folder `aperture-fab design` wrote (design.toml, design.npz)")
+    p.add_argument("--out", type=Path, metavar="FILE.html",
+                   help="where to write it (default: assembly.html in DESIGN_FOLDER)")
+    p.set_defaults(func=_cmd_assembly)
 
     p = sub.add_parser("presets", help="list the presets with their key numbers")
     p.set_defaults(func=_cmd_presets)

@@ -46,7 +46,7 @@ STAGING_PREFIX = ".staging-"
 #: these when an earlier run wrote them and this run did not; any other file is the user's.
 TOOL_FILE_NAMES: tuple[str, ...] = (
     *(fmt.file_name for fmt in PART_FORMATS.values()),
-    "report.json", "report.html", "views.npz", "loss.png",
+    "report.json", "report.html", "views.npz", "loss.png", "assembly.html",
     "design.npz", "design.toml", "design.json", MANIFEST_NAME,
 )
 TOOL_FILE_PATTERNS: tuple[str, ...] = ("view_*.png", "display_*.png", "target_*.png")

@@ -332,6 +332,10 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                                                for key in ("mse", "psnr_db")}
                 write_summary(stage, result)  # design.json again, with the validated figures
                 staged(stage)
+        if result.part is not None and fabrication is not None:  # assembly.html
+            from aperture_fab.pipeline.assembly_job import write_assembly
+            write_assembly(stage, result.part, result.config, fabrication, result.names,
+                           folder.resolve().name)
         publish(stage, folder, command if command is not None else DEFAULT_COMMAND)
     checkpoint.unlink(missing_ok=True)
     return result
