@@ -1,7 +1,7 @@
 """Image metrics for validation: how well a view matches its target, and how much light it passes.
 
 The eye cannot see more light than the holes pass, so a view is compared with its target after the
-view's least-squares gain (DESIGN.md section 3): MSE and PSNR (peak 1, linear light) on the
+view's least-squares gain (docs/design.md section 3): MSE and PSNR (peak 1, linear light) on the
 gain-scaled view, SSIM on the gain-scaled view clipped to [0, 1]. Light efficiency is the view's
 mean level over the open display's, reported beside them. Images are float arrays (C, ny, nx) of
 linear light, as everywhere in the model.

@@ -3,7 +3,7 @@
 Used only by the test suite to check the fast differentiable model. It deliberately imports
 nothing from aperture_fab, so a mistake shared by both cannot hide; numpy only.
 
-Geometry (millimetres, see DESIGN.md section 2): display at z = 0, plate bottom face at z = g,
+Geometry (millimetres, see docs/design.md section 2): display at z = 0, plate bottom face at z = g,
 top face at z = g + t, eye pupil plane at z_e = g + t + e, pupil centre at lateral c. A view
 direction is v = (tan theta_x, tan theta_y). The ray for direction v and pupil point c + u
 (|u| <= R), with the eye focused at distance D, is, at depth s below the pupil plane,

@@ -45,10 +45,10 @@ def test_presets_are_the_five_processes_with_sources() -> None:
 
 
 def test_fdm_cannot_make_pinholes_but_photomask_can() -> None:
-    # DESIGN.md: a slicer closes holes under about 0.6 mm with a 0.4 mm nozzle.
+    # docs/design.md: a slicer closes holes under about 0.6 mm with a 0.4 mm nozzle.
     assert PROCESSES["fdm"].min_hole_mm >= 0.6
     assert PROCESSES["photomask"].min_hole_mm <= 0.05
-    # DESIGN.md: holes are 0.05 to 0.3 mm; the best single pinhole at h = 10 mm is about
+    # docs/design.md: holes are 0.05 to 0.3 mm; the best single pinhole at h = 10 mm is about
     # sqrt(2 lambda h) = 0.105 mm across, which the default (resin) process must reach.
     assert PROCESSES["resin"].min_hole_for(0.3) < math.sqrt(2 * 550e-6 * 10.0)
 

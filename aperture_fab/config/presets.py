@@ -15,10 +15,10 @@ Why the "near-eye" numbers (the default):
 - thickness 0.3 mm: printable and stiff on an MSLA resin printer; chief-ray holes keep the
   oblique bundles from being clipped by the walls of a plate that thick;
 - pupil 4 mm: an indoor pupil; eye relief 10 mm: close, like glasses on the nose;
-- the eye moves (DESIGN.md section 3): the design is optimized over a distribution of eye
+- the eye moves (docs/design.md section 3): the design is optimized over a distribution of eye
   states, 16 fresh ones each iteration, for one display content (untracked): the pupil centre
   uniform over a 4 mm ellipse (a device on a head sits a little differently each time it is
-  put on and slips while worn: a few millimetres, DESIGN.md section 3), pupils 3 to 6 mm (indoor
+  put on and slips while worn: a few mm, docs/design.md section 3), pupils 3 to 6 mm (indoor
   light levels; 4 mm nominal), focus at infinity (relaxed: the plate's depth of field makes
   accommodation a weak effect, measured on natural over 0 to 0.5 D: 22.4 to 22.3 dB for a
   part designed over the eyebox, 33.6 to 33.2 dB at the nominal point for a nominal-point

@@ -246,8 +246,8 @@ PROCESSES: dict[str, Process] = {
             position_sigma_mm=0.1,
             sources=(
                 "Min hole: estimate between the slicer limit (a 0.4 mm nozzle closes holes under "
-                "about 0.6 mm, DESIGN.md) and design guides (blog.my3dpm.com FDM design table: "
-                "avoid holes under 2 mm; arti90.com: 2 mm)",
+                "about 0.6 mm, docs/design.md) and design guides (blog.my3dpm.com FDM design "
+                "table: avoid holes under 2 mm; arti90.com: 2 mm)",
                 "blog.my3dpm.com: minimum wall 0.8 mm (two 0.4 mm perimeters); "
                 "3dservicesusa.com: FDM minimum wall 0.8 mm",
                 "Min thickness 0.4 mm = two 0.2 mm layers (estimate)",

@@ -1,6 +1,6 @@
 """Target images: decode files (bytes) to linear-light RGB, resample, encode PNG.
 
-Inside the model colour is linear light in [0, 1]; image files are sRGB (DESIGN.md section 2), so
+Inside the model colour is linear light in [0, 1]; files are sRGB (docs/design.md section 2), so
 this module converts at the edge. An image array is float64 of shape (C, H, W): C = 3 (RGB) or 1
 (grey), row 0 the top, column 0 the left. This module does not touch the filesystem: it takes and
 returns bytes; the caller reads and writes files.

@@ -1,6 +1,6 @@
 """The eye as a distribution: where the pupil is, how wide, how focused, which way it looks.
 
-A worn device is seen by many eye states (DESIGN.md section 3, "The eye moves"): the pupil centre
+A worn device sees many eye states (docs/design.md section 3, "The eye moves"): the pupil centre
 sits anywhere in an eyebox of a few millimetres, moves with gaze as the eye rotates, changes
 diameter with the light level and accommodates. `EyeDistribution` describes that spread,
 `EyeStates` is a batch of S concrete states with quadrature weights, and the methods of
@@ -10,7 +10,7 @@ iteration via `iteration_seed`), a fixed low-discrepancy set for judging a part
 
 Numpy only: the renderer turns a batch into tensors itself.
 
-Conventions (DESIGN.md section 2): millimetres; x to the right, y up, for the eye looking toward
+Conventions (docs/design.md section 2): mm; x to the right, y up, for the eye looking toward
 -z; offsets are absolute pupil-centre positions in the scene frame, like `Eye.positions_mm`.
 Focus is in diopters, 1000 / focus distance in mm, 0 = infinity (relaxed).
 

@@ -1,4 +1,4 @@
-"""The physical scene: display, plate, eye. Millimetres and radians; see DESIGN.md section 2.
+"""The physical scene: display, plate, eye. Millimetres and radians; see docs/design.md section 2.
 
 Axes: z is the optical axis, the display at z = 0, the plate's bottom face at z = gap, its top
 face at z = gap + thickness, the eye's pupil at z = gap + thickness + eye_relief. x to the right,

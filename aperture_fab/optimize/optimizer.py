@@ -1,6 +1,6 @@
 """Optimize the plate's open-area fractions (and the display content) so the view matches targets.
 
-The loss is DESIGN.md's: the MSE between the target and the view scaled by its least-squares gain,
+The loss (docs/design.md): the MSE between the target and the view scaled by its least-squares gain,
 averaged over targets, plus an optional light-efficiency term, per eye state; each iteration
 draws its eye states afresh from the eye distribution (`aperture_fab.optics.eyes`) and takes their
 expected loss, or the mean over the worst share of them (`tail_share`).

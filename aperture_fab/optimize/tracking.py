@@ -1,6 +1,6 @@
 """Tracked displays: the display content solved for one known eye state, the plate fixed.
 
-A worn device sees a moving eye (DESIGN.md section 3, "The eye moves"). Untracked, it shows one
+A worn device sees a moving eye (docs/design.md section 3, "The eye moves"). Untracked, it shows one
 display content for every eye state: the design's. Tracked, it knows the pupil's position and
 diameter (and, with a focus tracker, its accommodation) and re-solves the content for that state,
 frame by frame, starting from the untracked content. The plate is hardware and stays as made;
@@ -8,7 +8,7 @@ only the software content moves. See docs/tracking.md.
 
 The problem. For one eye state the view is linear in the display: v = A d, with A the renderer's
 `render_states` after `display_stack` (non-negative: blur kernels, interpolation weights and hole
-shares are all >= 0). The loss is DESIGN.md's, the MSE to the target t after the view's
+shares are all >= 0). The loss is docs/design.md's, the MSE to the target t after the view's
 least-squares gain, so the display's scale is free: minimise over d >= 0, then rescale to a
 maximum of 1 (the result lies in [0, 1] and loses nothing).
 
