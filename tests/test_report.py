@@ -26,12 +26,12 @@ from aperture_fab.metrics import METRIC_KEYS
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
-    figure_hole_map,
     figure_loss,
     figure_sweep,
     figure_thumbnails,
     figure_views,
 )
+from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
 from aperture_fab.validation.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
@@ -138,7 +138,8 @@ def png_size(data: bytes) -> tuple[int, int]:
 
 def test_build_report_structure(report: dict[str, Any]) -> None:
     assert report["schema_version"] == SCHEMA_VERSION == 2
-    assert list(report)[:4] == ["schema_version", "eye_distribution", "verdicts", "metrics"]
+    assert list(report)[:5] == ["schema_version", "eye_distribution", "verdicts", "photometry",
+                                "metrics"]
     eyes = report["eye_distribution"]
     assert eyes["eyebox_map"]["psnr_db"]["as_built"][0][0] == [None, 22.0, None]  # NaN: null
     assert eyes["eyebox_map"]["inside"][1] == [True, True, True]
@@ -345,7 +346,8 @@ def test_figures_are_pngs() -> None:
     many = [(f"pos{k}", target) for k in range(9)]  # wraps onto two lines
     assert png_size(figure_views(many, "eyebox"))[1] > png_size(figure_views(many[:3], "x"))[1]
     assert png_size(figure_views([("display", target)], "display", gain_to_first=False))
-    assert png_size(figure_hole_map(rng.uniform(0, 0.1, (10, 12)), (0.25, 0.25)))
+    assert png_size(hole_map(rng))
+    assert png_size(figure_errors(target, [("view", 0.3 * target), ("grey", target[:1])]))
     assert png_size(figure_loss(np.geomspace(1, 1e-3, 50)))
     assert png_size(figure_loss(np.array([0.5, 0.0, -0.1])))  # not log-scalable: linear axis
     assert png_size(figure_histogram(rng.normal(30, 2, 64), 25.0))
@@ -376,13 +378,31 @@ def test_figure_views_scales_by_gain() -> None:
                         gain_to_first=False) != same
 
 
-def test_hole_map_from_open_fraction_equals_from_radii() -> None:
-    pitch = (0.25, 0.2)
-    radii = np.random.default_rng(3).uniform(0, 0.09, (6, 8))
-    radii[0, 0] = 0.0  # a closed cell
-    fraction = math.pi * radii**2 / (pitch[0] * pitch[1])
-    assert (figure_hole_map(fraction, pitch, kind="open_fraction")
-            == figure_hole_map(radii, pitch))
+#: A 2 x 2.5 mm plate outline with its top-left corner cut (fabrication.mesh.outline_points_mm).
+OUTLINE = [(1.0, 1.25), (-0.8, 1.25), (-1.0, 1.05), (-1.0, -1.25), (1.0, -1.25)]
+
+
+def hole_map(rng: np.random.Generator, count: int = 12) -> bytes:
+    centres = rng.uniform(-0.8, 0.8, (count, 2))
+    return figure_hole_map(centres, rng.uniform(0.02, 0.09, count), OUTLINE)
+
+
+def test_hole_map_draws_the_holes_to_scale_in_the_outline() -> None:
+    rng = np.random.default_rng(3)
+    assert hole_map(rng) != hole_map(np.random.default_rng(4))
+    # no holes (a blank plate) and holes of one size still draw
+    assert png_size(figure_hole_map(np.zeros((0, 2)), np.zeros(0), OUTLINE))
+    assert png_size(figure_hole_map(np.zeros((1, 2)), np.array([0.1]), OUTLINE))
+    wide = png_size(figure_hole_map(np.zeros((1, 2)), np.array([0.1]),
+                                    [(4.0, 1.0), (-4.0, 1.0), (-4.0, -1.0), (4.0, -1.0)]))
+    assert wide[0] > 1.5 * wide[1]  # drawn to scale: a wide plate gives a wide figure
+
+
+def test_error_maps_compare_shapes_not_levels() -> None:
+    target = np.random.default_rng(2).uniform(0, 1, (3, 12, 12))
+    zero = figure_errors(target, [("view", target)])
+    assert figure_errors(target, [("view", 0.5 * target)]) == zero  # the gain takes the level
+    assert figure_errors(target, [("view", target[::-1].copy())]) != zero
 
 
 def test_figure_errors() -> None:
@@ -392,8 +412,16 @@ def test_figure_errors() -> None:
         figure_views([("a", np.ones((3, 4, 4))), ("b", np.ones((3, 5, 4)))], "t")
     with pytest.raises(ValueError, match="C = 1 or 3"):
         figure_views([("a", np.ones((2, 4, 4)))], "t")
-    with pytest.raises(ValueError, match=">= 0"):
-        figure_hole_map(-np.ones((2, 2)), (0.25, 0.25))
+    with pytest.raises(ValueError, match="radii > 0"):
+        figure_hole_map(np.zeros((1, 2)), -np.ones(1), OUTLINE)
+    with pytest.raises(ValueError, match="one radius per hole"):
+        figure_hole_map(np.zeros((2, 2)), np.ones(1), OUTLINE)
+    with pytest.raises(ValueError, match="closed loop"):
+        figure_hole_map(np.zeros((1, 2)), np.ones(1), OUTLINE[:2])
+    with pytest.raises(ValueError, match="no views"):
+        figure_errors(np.ones((3, 4, 4)), [])
+    with pytest.raises(ValueError, match="has shape"):
+        figure_errors(np.ones((3, 4, 4)), [("b", np.ones((3, 5, 4)))])
     with pytest.raises(ValueError, match="N >= 1"):
         figure_loss(np.array([]))
     with pytest.raises(ValueError, match="finite"):
@@ -433,7 +461,9 @@ def test_verdicts_hand_written(report: dict[str, Any]) -> None:
         "0 to 0.5 D), the part as built scores 24.0 dB PSNR at the 10th percentile for target "
         "'letter' (median 26.0, 90th 27.0; 28.0 at the nominal eye point), against 20.5 dB for "
         "the open display (+3.5 dB) and 19.0 dB for the regular pinhole array (+5.0 dB).")
-    assert lines[1].startswith("Yield at 25.0 dB over 64 tolerance samples: 92 %.")
+    assert lines[1].startswith("92 % of 64 parts drawn with the process's tolerances score "
+                               "above 25.0 dB. Median 30.1 dB")
+    assert found[1].level == "pass"
     assert lines[2] == ("At the nominal eye point, as built, the view scores 31.2 dB PSNR (SSIM "
                         "0.90), 9.8 dB better than the open display and 6.1 dB better than a "
                         "regular pinhole array.")
@@ -446,7 +476,7 @@ def test_verdicts_hand_written(report: dict[str, Any]) -> None:
                for line in lines)
     assert "The mesh is watertight, genus 240 (one per hole), 10000 triangles." in lines
     assert not any("diffraction blurs" in line for line in texts(report))
-    assert all(v.level == "info" for v in found[1:])
+    assert all(v.level == "info" for v in found[2:])
 
 
 def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]) -> None:
@@ -524,8 +554,8 @@ def all_figures() -> dict[str, bytes]:
             "eye_pupil": sweep, "eye_focus": figure_loss(np.geomspace(1, 1e-2, 5)),
             "eye_thumbnails": figure_thumbnails(target[None], target[None, None],
                                                 np.zeros((1, 2)), np.ones((1, 1))),
-            "views": views, "hole_map": figure_hole_map(rng.uniform(0, 0.1, (8, 8)), (0.25, 0.25)),
-            "display": figure_views([("display", target)], "display", gain_to_first=False),
+            "views": views, "hole_map": hole_map(rng),
+            "errors": figure_errors(target, [("as built", 0.2 * target)]),
             "loss": figure_loss(np.geomspace(1, 1e-2, 20)), "eyebox": views,
             "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0)}
 
@@ -559,8 +589,9 @@ def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
     assert all(u.startswith(("data:image/png;base64,", "#")) for u in parser.urls)
     assert "http://" not in page and "https://" not in page
     assert "Quantization and fabrication cost 0.6 dB." in page
-    # the eye distribution leads: its section and figures come first
-    assert parser.headings[0] == "Over the eye distribution"
+    # the verdict leads, then light and contrast; the eye distribution's figures come first
+    assert parser.headings[:4] == ["Verdict", "Findings", "Light and contrast",
+                                   "Over the eye distribution"]
     assert parser.image_ids[:4] == ["fig-eye_map", "fig-eye_pupil", "fig-eye_focus",
                                     "fig-eye_thumbnails"]
 

@@ -134,8 +134,9 @@ def test_not_judged_falls_back_to_the_nominal_figures_with_a_note() -> None:
     assert report["verdicts"][0]["topic"] == EYE_TOPIC
     assert eye_headline(report) is None
     page = report_html(report, {}, verdicts(report))
-    lead = page[page.index('<section id="eyes">'):page.index('<section id="summary">')]
+    lead = page[page.index('<section id="eyes">'):page.index('<section id="views">')]
     assert "PSNR nominal (dB), mean over targets" in lead and "NOTE" in lead
+    assert "validation.eye_states = 0" in page[:page.index('<section id="eyes">')]
     assert "<img" not in lead
 
 
@@ -219,7 +220,7 @@ def test_html_leads_with_the_eye_distribution_table_and_figures() -> None:
     page = report_html(report, figures, verdicts(report))
     lead = Lead()
     lead.feed(page)
-    assert lead.sections[0] == "eyes"
+    assert lead.sections[:3] == ["verdict", "light", "eyes"]
     first = lead.tables[0]
     assert first[0] == ["variant", "PSNR p10 (dB)", "PSNR median (dB)", "PSNR p90 (dB)",
                         "SSIM p10", "PSNR nominal (dB)"]
@@ -231,8 +232,12 @@ def test_html_leads_with_the_eye_distribution_table_and_figures() -> None:
     assert first[1][5] == f"{OPEN_DB - 1.5 + 3:.1f}"
     assert lead.images == [("eyes", f"fig-{key}") for key in (
         "eye_map", "eye_pupil", "eye_focus", "eye_thumbnails")]
-    # the red verdict sits under the table, before the figures, and not again in the summary
-    eyes_html = page[page.index('<section id="eyes">'):page.index('<section id="summary">')]
+    # the red verdict leads the page; under the eye table, before the figures, its level
+    # points to it; its text is on the page once
+    verdict_html = page[page.index('<section id="verdict">'):page.index('<section id="light">')]
+    assert 'class="overall overall-fail"' in verdict_html
+    assert "below that of the open display" in verdict_html
+    eyes_html = page[page.index('<section id="eyes">'):page.index('<section id="views">')]
     assert eyes_html.index("<table>") < eyes_html.index('class="verdict verdict-fail"') \
         < eyes_html.index("<img")
     assert page.count("below that of the open display") == 1

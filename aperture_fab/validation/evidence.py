@@ -3,8 +3,11 @@ the views archive. Values in, bytes out; the pipeline writes the files."""
 
 from __future__ import annotations
 
+import datetime
+import math
 import platform
-from collections.abc import Mapping
+import shlex
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
@@ -13,33 +16,38 @@ import numpy as np
 
 from aperture_fab.config.config import Config, to_dict
 from aperture_fab.fabrication.layout import layout_stats
+from aperture_fab.fabrication.mesh import outline_points_mm
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
+from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain_psnr_db
+from aperture_fab.optics.photometry import PhotometrySettings, photometry_settings
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
-    figure_hole_map,
     figure_loss,
     figure_sweep,
     figure_thumbnails,
     figure_views,
 )
+from aperture_fab.validation.light import content_level, photometry_block
+from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
 from aperture_fab.validation.report import (
     EYE_VARIANT_LABELS,
     EYE_VARIANTS,
-    VARIANT_LABELS,
     build_report,
     scene_dict,
     validate_report,
     views_npz,
 )
-from aperture_fab.validation.report_html import report_html, verdicts
+from aperture_fab.validation.report_html import report_html
 from aperture_fab.validation.robustness import PERCENTILES, EyeQuality
 from aperture_fab.validation.validate import Validation
-from aperture_fab.validation.variants import SHOWN_VARIANTS
+from aperture_fab.validation.variants import SHOWN_VARIANTS, VARIANTS
+from aperture_fab.validation.verdicts import verdicts
 
-__all__ = ["Evidence", "assemble", "eye_distribution_block", "eye_figures"]
+__all__ = ["Evidence", "assemble", "eye_distribution_block", "eye_figures", "light_block",
+           "run_block"]
 
 #: Wavelength for the diffraction verdict (green, where the eye is most sensitive).
 VERDICT_WAVELENGTH_MM = 530e-6
@@ -64,10 +72,48 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def run_block(part_file: str, process: str, command: Sequence[str] | str | None,
+              date: str | None = None) -> dict[str, Any]:
+    """report.json's "run" block: the part's file name, the process, the date (ISO 8601 UTC,
+    now unless given) and the command line (None: called from Python)."""
+    when = date if date is not None else datetime.datetime.now(datetime.UTC).isoformat(
+        timespec="seconds").replace("+00:00", "Z")
+    line = command if command is None or isinstance(command, str) else shlex.join(command)
+    return {"part": part_file, "process": process, "date": when, "command": line}
+
+
+def light_block(config: Config, validation: Validation, displays: np.ndarray, process: Process,
+                open_share: float) -> dict[str, Any] | None:
+    """report.json's "photometry" block for the part as built (None when its light efficiency
+    was not computed). A [photometry] table that cannot be read falls back to the defaults,
+    with a warning in the block (the report is not lost at the end of a long design)."""
+    per_target = validation.metrics.get("as_built", {})
+    values = [m["light_efficiency"] for m in per_target.values()]
+    if not values or any(v is None or not math.isfinite(v) for v in values):
+        return None
+    try:
+        settings, error = photometry_settings(config.extra), None
+    except (TypeError, ValueError) as err:
+        settings, error = PhotometrySettings(), f"[photometry] not used: {err}"
+    eye, optimizer = config.scene.eye, config.optimizer
+    return photometry_block(
+        efficiency=float(np.mean(values)), level=content_level(displays), settings=settings,
+        assumed_pupil_mm=eye.pupil_mm, fov_deg=(eye.fov_deg[0], eye.fov_deg[1]),
+        min_efficiency=optimizer.min_efficiency, efficiency_weight=optimizer.efficiency_weight,
+        optical_density=process.optical_density,
+        optical_density_note=process.optical_density_note, open_share=open_share,
+        settings_error=error)
+
+
 def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
              displays: np.ndarray, loss_history: np.ndarray, part: Part, process: Process,
-             validation: Validation, timings_s: Mapping[str, float]) -> Evidence:
-    """Everything the report shows, from the design job's values."""
+             validation: Validation, timings_s: Mapping[str, float], *,
+             part_file: str = "plate.stl", command: Sequence[str] | str | None = None,
+             date: str | None = None) -> Evidence:
+    """Everything the report shows, from the design job's values.
+
+    part_file, command, date: the header's part (file name), the command line (None: called
+    from Python) and the date (ISO 8601 UTC; None: now)."""
     stats = layout_stats(part.layout)
     fabrication = {
         "process": process.name,
@@ -99,26 +145,34 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
                           scene=scene_dict(config.scene), config=to_dict(config),
                           versions=_versions(),
                           eye_distribution=None if eyes is None else eye_distribution_block(
-                              eyes, names, targets))
+                              eyes, names, targets),
+                          run=run_block(part_file, process.name, command, date),
+                          photometry=light_block(config, validation, displays, process,
+                                                 float(stats["open_area_fraction"])))
     if validation.mesh_stderr is not None:
         report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
 
     first = names[0]
     views = validation.views
+    shown = [v for v in SHOWN_VARIANTS if v in views]
     rows = [("target", targets[0])] + [
-        (VARIANT_LABELS.get(v, v), views[v][0, 0]) for v in SHOWN_VARIANTS if v in views]
+        (_panel_label(v, validation.metrics.get(v, {}).get(first)), views[v][0, 0])
+        for v in shown]
+    layout = part.layout
     figures = {
         **({} if eyes is None else eye_figures(eyes, names, targets)),
         "views": figure_views(rows, f"Target {first!r}: what the eye sees"),
-        "hole_map": figure_hole_map(_radii(part), part.layout.pitch_mm),
-        "display": figure_views([(f"display {n}", d) for n, d in zip(names, displays,
-                                                                       strict=True)],
-                                "Display content", gain_to_first=False),
+        "errors": figure_errors(targets[0], rows[1:],
+                                title=f"Target {first!r}: error of each view"),
+        "hole_map": figure_hole_map(layout.centres_mm, layout.radii_mm,
+                                    outline_points_mm(layout, part.corner_cut_mm)),
         "loss": figure_loss(loss_history),
     }
     if views["as_built"].shape[1] > 1:
+        positions = views["as_built"][0]
+        psnr = gain_psnr_db(positions[None], targets[0][None])[0]
         figures["eyebox"] = figure_views(
-            [(f"eye at {p}", views["as_built"][0, k])
+            [(f"eye at ({p[0]:g}, {p[1]:g}) mm\n{psnr[k]:.1f} dB", positions[k])
              for k, p in enumerate(config.scene.eye.positions_mm)], "As built across the eyebox")
     if validation.tolerance is not None:
         figures["tolerance"] = figure_histogram(
@@ -132,7 +186,8 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
     lines = verdicts(report, diffraction_blur_px=blur)
     report["verdicts"] = [line.as_dict() for line in lines]
     validate_report(report)
-    html = report_html(report, figures, lines)
+    html = report_html(report, figures, lines, {
+        name: encode_png(np.clip(d, 0.0, 1.0)) for name, d in zip(names, displays, strict=True)})
     archive = {
         f"{variant}/{name}" + (f"/pos{k}" if v.shape[1] > 1 else ""): v[t, k]
         for variant, v in views.items()
@@ -142,11 +197,13 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
     return Evidence(report, html, views_npz(archive))
 
 
-def _radii(part: Part) -> np.ndarray:
-    nx, ny = part.layout.grid
-    radii = np.zeros((ny, nx))
-    radii[part.layout.cells[:, 0], part.layout.cells[:, 1]] = part.layout.radii_mm
-    return radii
+def _panel_label(variant: str, values: Mapping[str, Any] | None) -> str:
+    """A view panel's title: the variant's name and its PSNR and SSIM (nominal eye)."""
+    name = VARIANTS[variant].title
+    if values is None or values.get("psnr_db") is None:
+        return name
+    ssim = values.get("ssim")
+    return f"{name}\n{values['psnr_db']:.1f} dB" + ("" if ssim is None else f", SSIM {ssim:.2f}")
 
 
 

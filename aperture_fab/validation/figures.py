@@ -11,15 +11,16 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from aperture_fab.io.images import linear_to_srgb
 from aperture_fab.metrics import gain
 
-__all__ = ["figure_views", "figure_hole_map", "figure_loss", "figure_histogram",
-           "figure_eyebox_map", "figure_sweep", "figure_thumbnails"]
+__all__ = ["PANEL_INCHES", "TITLE_FONT_SIZE", "figure_views", "figure_loss", "figure_histogram",
+           "figure_eyebox_map", "figure_sweep", "figure_thumbnails", "text_width_in",
+           "wrap_to_width"]
 
 FIGURE_DPI = 100
 #: Width and height of one image panel in figure_views (inches).
@@ -30,6 +31,43 @@ UM_PER_MM = 1000.0
 TARGET_STYLES = ("-", "--", ":", "-.")
 #: Value labels in the eyebox map's cells up to this many cells per side.
 MAX_LABELLED_CELLS = 9
+#: Font size (points) of panel titles in figure_views.
+TITLE_FONT_SIZE = 9
+#: Share of a panel's width its title may fill (the rest keeps neighbouring titles apart).
+TITLE_WIDTH_SHARE = 0.95
+POINTS_PER_INCH = 72.0
+
+
+def text_width_in(text: str, fontsize: float) -> float:
+    """The widest line of `text` as matplotlib draws it (inches, default font)."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextToPath
+
+    prop = FontProperties(size=fontsize)
+    measure = TextToPath()
+    widths = [measure.get_text_width_height_descent(line, prop, ismath=False)[0]
+              for line in text.split("\n")]
+    return max(widths) / POINTS_PER_INCH
+
+
+def wrap_to_width(text: str, width_in: float, fontsize: float) -> str:
+    """`text` broken at spaces into lines no wider than width_in as drawn (existing line breaks
+    kept); a single word wider than that is shortened with an ellipsis rather than cut."""
+    lines: list[str] = []
+    for paragraph in text.split("\n"):
+        line = ""
+        for word in paragraph.split(" "):
+            trial = f"{line} {word}" if line else word
+            if line and text_width_in(trial, fontsize) > width_in:
+                lines.append(line)
+                trial = word
+            line = trial
+        lines.append(line)
+    for i, line in enumerate(lines):
+        while text_width_in(line, fontsize) > width_in and len(line) > 2:
+            line = line[:-2] + "…"
+        lines[i] = line
+    return "\n".join(lines)
 
 
 def _figure(width_in: float, height_in: float) -> Any:
@@ -65,7 +103,7 @@ def figure_views(rows: list[tuple[str, np.ndarray]], title: str, *,
     """PNG of labelled images side by side (wrapping after MAX_PANELS_PER_ROW), in sRGB.
 
     rows: (label, image) pairs, images (C, ny, nx) or (ny, nx) in linear light; the first is
-        usually the target.
+        usually the target. Labels are wrapped to the panel's width (wrap_to_width).
     gain_to_first: scale each later image by its least-squares gain onto the first (the eye
         cannot see more light than the holes pass: compare shapes, not levels); images must then
         share the first one's shape. Images are clipped to [0, 1] for display.
@@ -81,45 +119,17 @@ def figure_views(rows: list[tuple[str, np.ndarray]], title: str, *,
             images[i] = image * gain(image, images[0])
     cols = min(len(rows), MAX_PANELS_PER_ROW)
     lines = math.ceil(len(rows) / cols)
-    fig = _figure(cols * PANEL_INCHES, lines * PANEL_INCHES + 0.4)
-    fig.suptitle(title)
-    for i, ((label, _), image) in enumerate(zip(rows, images, strict=True)):
+    labels = [wrap_to_width(label, PANEL_INCHES * TITLE_WIDTH_SHARE, TITLE_FONT_SIZE)
+              for label, _ in rows]
+    title_lines = max(label.count("\n") + 1 for label in labels)
+    title_in = title_lines * TITLE_FONT_SIZE * 1.3 / POINTS_PER_INCH
+    fig = _figure(cols * PANEL_INCHES, lines * (PANEL_INCHES + title_in) + 0.4)
+    fig.suptitle(wrap_to_width(title, cols * PANEL_INCHES * TITLE_WIDTH_SHARE, 12), fontsize=12)
+    for i, (label, image) in enumerate(zip(labels, images, strict=True)):
         ax = fig.add_subplot(lines, cols, i + 1)
         ax.imshow(linear_to_srgb(np.clip(image, 0.0, 1.0)), interpolation="nearest")
-        ax.set_title(label, fontsize=9)
+        ax.set_title(label, fontsize=TITLE_FONT_SIZE)
         ax.set_axis_off()
-    return _png(fig)
-
-
-def figure_hole_map(values: np.ndarray, pitch_mm: tuple[float, float], *,
-                    kind: Literal["radius_mm", "open_fraction"] = "radius_mm") -> bytes:
-    """PNG colour map of each cell's hole diameter (um), closed cells grey, axes in mm.
-
-    values: (rows, cols) hole radii in mm, or open-area fractions a = pi r^2 / (px py).
-    pitch_mm: (px, py) cell pitch.
-    """
-    array = np.asarray(values, dtype=np.float64)
-    if array.ndim != 2 or min(array.shape) == 0 or not np.all(np.isfinite(array)):
-        raise ValueError(f"hole map values have shape {array.shape}; expected finite "
-                         "(rows, cols).")
-    if array.min() < 0:
-        raise ValueError(f"hole map {kind} values go down to {array.min():g}; allowed: >= 0.")
-    px, py = pitch_mm
-    radii = array if kind == "radius_mm" else np.sqrt(array * px * py / math.pi)
-    diameter_um = np.ma.masked_less_equal(2 * radii * UM_PER_MM, 0.0)
-    rows, cols = array.shape
-    half_w, half_h = cols * px / 2, rows * py / 2
-    import matplotlib as mpl  # _figure has checked that matplotlib is there
-
-    fig = _figure(5.0, 4.2)
-    cmap = mpl.colormaps["viridis"].with_extremes(bad="0.8")
-    ax = fig.add_subplot()
-    shown = ax.imshow(diameter_um, cmap=cmap, interpolation="nearest",
-                      extent=(-half_w, half_w, -half_h, half_h))
-    fig.colorbar(shown, ax=ax, label="hole diameter (µm)")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(f"{int(np.count_nonzero(radii > 0))} holes (grey: closed)")
     return _png(fig)
 
 
@@ -149,7 +159,7 @@ def figure_histogram(values: np.ndarray, threshold: float | None) -> bytes:
     ax = fig.add_subplot()
     ax.hist(data, bins="auto", color="0.4")
     if threshold is not None:
-        ax.axvline(threshold, color="tab:red", label=f"threshold {threshold:g} dB")
+        ax.axvline(threshold, color="tab:red", label=f"threshold {threshold:.1f} dB")
         ax.legend()
     ax.set_xlabel("PSNR as built (dB)")
     ax.set_ylabel("samples")

@@ -1,18 +1,22 @@
 """The validation report's data: the report.json structure, its checks, and the views archive.
 
 Pure functions, values in and bytes or text out; the pipeline writes the files. The figures are
-in aperture_fab.validation.figures, the HTML page and its verdicts in
-aperture_fab.validation.report_html.
+in aperture_fab.validation.figures, the verdicts in aperture_fab.validation.verdicts, the HTML
+page in aperture_fab.validation.report_html.
 
 report.json (`build_report`, checked by `validate_report`, written by `report_json`):
 
     schema_version  2
+    run             (optional) {"part": the part's file name, "process", "date" (ISO 8601 UTC),
+                    "command": the command line, or null when called from Python}
+    photometry      (optional) the light budget of the part as built, or null when its light
+                    efficiency was not computed; see PHOTOMETRY below
     eye_distribution  the headline: the part and the baselines judged over the eye distribution
                     (aperture_fab.validation.robustness), or null when not judged
                     (validation.eye_states
                     = 0); see EYE_DISTRIBUTION below
     verdicts        [{"topic", "level" (one of LEVELS), "text"}], most important first; the first
-                    is topic EYE_TOPIC (aperture_fab.validation.report_html.verdicts); may be empty
+                    is topic EYE_TOPIC (aperture_fab.validation.verdicts.verdicts); may be empty
     metrics         {variant: {"per_target": {name: METRICS}, "mean": METRICS}}, variants from
                     REPORT_VARIANTS (any subset, at least one); METRICS = {"mse", "psnr_db",
                     "ssim", "light_efficiency"} (see aperture_fab.metrics), each a number or null
@@ -45,6 +49,20 @@ EYE_DISTRIBUTION (every per-target list in the order of "targets"):
     focus           {"focus_diopters": [m], "psnr_db": {variant: [per target: [m]]}},
                     nominal position and pupil
     thumbnails      {"variant", "offsets_mm": [[x, y]], "psnr_db": [per target: [per offset]]}
+
+PHOTOMETRY (aperture_fab.validation.light; cd/m2, trolands, mm):
+
+    panel_luminance_cd_m2, light_efficiency (the part as built, mean over targets, nominal
+    eye), content_level (mean linear luminance of the content shown, 0 to 1),
+    view_luminance_cd_m2, retinal_illuminance_td (with the assumed pupil), assumed_pupil_mm,
+    implied_pupil_mm (Watson and Yellott 2012, cited in pupil_source), pupil_source,
+    field_area_deg2, observer_age_years, adapted_eyes, regime (photopic, mesopic, scotopic),
+    photopic_efficiency (the efficiency that keeps this panel and content photopic, or null),
+    min_efficiency (optimizer.min_efficiency, 0 = no floor), efficiency_weight,
+    meets_min_efficiency (null without a floor), warnings [str],
+    leakage {optical_density, optical_density_note, open_share, leakage_share (light through the
+    material over the light through the holes; null: unbounded), contrast_ratio (null:
+    unlimited)}
 
 Non-finite numbers (NaN, infinity) are written as null: JSON has no NaN, and a reader should see
 "not computed" rather than fail to parse the file. Missing keys raise ValueError naming the key;
@@ -113,9 +131,12 @@ FIGURE_KEYS: dict[str, str] = {
                       "labelled with its offset and the PSNR of the view as shown (clipped to "
                       "the display's range).",
     "views": "The target and what the eye sees through the as-built part, beside each baseline "
-             "(each view scaled by its least-squares gain).",
-    "hole_map": "Hole diameter of each cell of the plate.",
-    "display": "The content shown on the display.",
+             "(each view scaled by its least-squares gain), each labelled with its PSNR and "
+             "SSIM at the nominal eye point.",
+    "errors": "Error maps: |gain x view - target| per pixel (mean over colour channels), the "
+              "part as built and each baseline on one scale; labelled with the mean error.",
+    "hole_map": "The plate to scale as seen from the eye: each hole a circle of its made "
+                "diameter (colour), the outline with its alignment chamfer, mm from the axis.",
     "loss": "Optimization loss per iteration.",
     "eyebox": "The as-built view at each eye position across the eyebox.",
     "tolerance": "PSNR over manufacturing-tolerance samples; the line marks the threshold.",
@@ -128,8 +149,8 @@ VIEW_KEY = re.compile(r"(?P<variant>[a-z_]+)/(?P<target>[^/]+)(/pos(?P<pos>\d+))
 # ---------------------------------------------------------------------------------------------
 # Checking the report's structure
 
-Kind = Literal["number", "number or null", "int", "bool", "str", "dict", "list", "int pair",
-               "int pair or null", "number pair"]
+Kind = Literal["number", "number or null", "int", "bool", "bool or null", "str",
+               "str or null", "dict", "list", "int pair", "int pair or null", "number pair"]
 
 _METRICS_SPEC: dict[str, Kind] = {key: "number or null" for key in METRIC_KEYS}
 _FABRICATION_SPEC: dict[str, Kind] = {
@@ -166,6 +187,23 @@ _EYE_DISTRIBUTION_SPEC: dict[str, Kind] = {
     "thumbnails": "dict",
 }
 _VERDICT_SPEC: dict[str, Kind] = {"topic": "str", "level": "str", "text": "str"}
+_RUN_SPEC: dict[str, Kind] = {"part": "str", "process": "str", "date": "str",
+                              "command": "str or null"}
+_PHOTOMETRY_SPEC: dict[str, Kind] = {
+    "panel_luminance_cd_m2": "number", "light_efficiency": "number", "content_level": "number",
+    "view_luminance_cd_m2": "number", "retinal_illuminance_td": "number",
+    "assumed_pupil_mm": "number", "implied_pupil_mm": "number", "pupil_source": "str",
+    "field_area_deg2": "number", "observer_age_years": "number", "adapted_eyes": "int",
+    "regime": "str", "photopic_efficiency": "number or null", "min_efficiency": "number",
+    "efficiency_weight": "number", "meets_min_efficiency": "bool or null", "warnings": "list",
+    "leakage": "dict",
+}
+_LEAKAGE_SPEC: dict[str, Kind] = {
+    "optical_density": "number", "optical_density_note": "str", "open_share": "number",
+    "leakage_share": "number or null", "contrast_ratio": "number or null",
+}
+#: The light regimes photometry names (aperture_fab.optics.photometry.regime).
+REGIMES: tuple[str, ...] = ("photopic", "mesopic", "scotopic")
 _EYE_PERCENTILE_KEYS = ("p10", "p50", "p90")
 
 
@@ -186,7 +224,9 @@ _KIND_CHECKS = {
     "number or null": lambda v: v is None or _is_number(v),
     "int": _is_int,
     "bool": lambda v: isinstance(v, bool),
+    "bool or null": lambda v: v is None or isinstance(v, bool),
     "str": lambda v: isinstance(v, str),
+    "str or null": lambda v: v is None or isinstance(v, str),
     "dict": lambda v: isinstance(v, Mapping),
     "list": lambda v: isinstance(v, (list, tuple)),
     "int pair": lambda v: _is_pair(v, _is_int),
@@ -225,6 +265,10 @@ def validate_report(report: Mapping[str, Any]) -> None:
         raise ValueError(f"report.schema_version = {report['schema_version']}; this code reads "
                          f"version {SCHEMA_VERSION}.")
     _get(report, "tolerance", "")
+    if report.get("run") is not None:
+        _check(report["run"], _RUN_SPEC, "run")
+    if report.get("photometry") is not None:
+        _check_photometry(report["photometry"])
     if _get(report, "eye_distribution", "") is not None:
         _check_eye_distribution(report["eye_distribution"])
     for i, verdict in enumerate(report["verdicts"]):
@@ -266,6 +310,17 @@ def validate_report(report: Mapping[str, Any]) -> None:
         if not _is_pair(position, _is_number):
             raise TypeError(f"report scene.eye.positions_mm[{i}] = {position!r} must be [x, y].")
     _check(report["versions"], dict.fromkeys(report["versions"], "str"), "versions")
+
+
+def _check_photometry(block: Any) -> None:
+    _check(block, _PHOTOMETRY_SPEC, "photometry")
+    _check(block["leakage"], _LEAKAGE_SPEC, "photometry.leakage")
+    if block["regime"] not in REGIMES:
+        raise ValueError(f"report photometry.regime = {block['regime']!r}; allowed: "
+                         f"{', '.join(REGIMES)}.")
+    if not all(isinstance(w, str) for w in block["warnings"]):
+        raise TypeError(f"report photometry.warnings = {block['warnings']!r:.80} must be a list "
+                        "of strings.")
 
 
 def _check_per_target(values: Any, count: int, where: str, item: str = "number or null"
@@ -401,13 +456,17 @@ def build_report(
     versions: Mapping[str, str],
     eye_distribution: Mapping[str, Any] | None = None,
     verdicts: Sequence[Verdict | Mapping[str, str]] = (),
+    run: Mapping[str, Any] | None = None,
+    photometry: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The report.json structure, checked (see the module docstring).
 
     eye_distribution: the EYE_DISTRIBUTION block (aperture_fab.validation.evidence builds it from
         robustness.EyeQuality), or None when the eye distribution was not judged.
     verdicts: Verdicts (or their dicts), most important first; usually added afterwards, since
-        aperture_fab.validation.report_html.verdicts reads the report.
+        aperture_fab.validation.verdicts.verdicts reads the report.
+    run: the RUN block (part file, process, date, command), or None to leave it out.
+    photometry: the PHOTOMETRY block (aperture_fab.validation.light.photometry_block), or None.
 
     metrics: {variant: {target name: metrics dict (aperture_fab.metrics.metrics)}}; each
         variant's mean over targets is added, and variants are listed in REPORT_VARIANTS order.
@@ -427,8 +486,10 @@ def build_report(
         blocks[variant] = {"per_target": per_target, "mean": mean}
     report = json_ready({
         "schema_version": SCHEMA_VERSION,
+        **({} if run is None else {"run": run}),
         "eye_distribution": eye_distribution,
         "verdicts": [v.as_dict() if isinstance(v, Verdict) else v for v in verdicts],
+        "photometry": photometry,
         "metrics": blocks,
         "fabrication": fabrication,
         "mesh": mesh,

@@ -28,7 +28,8 @@ class VariantInfo:
     short: its name in the eye-distribution table, figures and the terminal (None: not judged
     over the eye distribution). phrase: how a verdict names it when the part must beat it (None:
     not such a baseline). display: what the display shows with it. figure: drawn beside the
-    target in the report's main figure.
+    target in the report's main figure. panel: its title on a view panel when neither short
+    nor label is short enough.
     """
 
     name: str
@@ -37,18 +38,27 @@ class VariantInfo:
     short: str | None = None
     phrase: str | None = None
     figure: bool = True
+    panel: str | None = None
+
+    @property
+    def title(self) -> str:
+        """A view panel's title: panel, else short, else label."""
+        return self.panel or self.short or self.label
 
 
 VARIANTS: dict[str, VariantInfo] = {v.name: v for v in (
     VariantInfo("open", "open display (no plate)", "target", "open display", "the open display"),
     VariantInfo("regular_pinholes", "regular pinhole array", "target", "regular pinholes",
             "the regular pinhole array"),
-    VariantInfo("random", "random mask (the dissertation's start)", "target"),
+    VariantInfo("random", "random mask (the dissertation's start)", "target",
+                panel="random mask"),
     VariantInfo("optimized", "optimized design", "designed", "optimized"),
     VariantInfo("quantized", "after quantization", "shown", figure=False),
     VariantInfo("as_built", "as built (real holes, real thickness)", "shown", "as built"),
-    VariantInfo("as_built_mesh", "as built, traced through the written mesh", "shown"),
-    VariantInfo("as_built_diffraction", "as built, with diffraction", "shown"),
+    VariantInfo("as_built_mesh", "as built, traced through the written mesh", "shown",
+                panel="traced through the mesh"),
+    VariantInfo("as_built_diffraction", "as built, with diffraction", "shown",
+                panel="with diffraction"),
 )}
 #: Tables and figures list the part first, then the design, then the baselines.
 PART_FIRST: tuple[str, ...] = ("as_built", "optimized", "open", "regular_pinholes", "random",

@@ -1,0 +1,126 @@
+"""The report's figures of the part and its errors: the plate to scale, and error maps.
+
+Pure functions, values in and PNG bytes out (aperture_fab.validation.figures draws the others);
+matplotlib's object-oriented API only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from aperture_fab.metrics import gain
+from aperture_fab.validation.figures import (
+    PANEL_INCHES,
+    TITLE_FONT_SIZE,
+    _as_rgb,
+    _figure,
+    _png,
+    wrap_to_width,
+)
+
+__all__ = ["figure_errors", "figure_hole_map"]
+
+UM_PER_MM = 1000.0
+#: The hole map's plate drawing, inches on its longer side.
+PLATE_INCHES = 6.0
+#: Error maps share one scale up to this percentile of every map's errors (a few outliers do
+#: not wash the rest out).
+ERROR_SCALE_PERCENTILE = 99.5
+
+
+def figure_hole_map(centres_mm: np.ndarray, radii_mm: np.ndarray,
+                    outline_mm: Sequence[tuple[float, float]], *, title: str = "") -> bytes:
+    """PNG of the plate to scale: each hole a circle of its diameter (colour: diameter in um),
+    the outline (a closed loop of (x, y) points, e.g. fabrication.mesh.outline_points_mm with
+    its alignment chamfer), axes in mm, x right and y up as seen from the eye.
+
+    centres_mm: (K, 2) hole centres; radii_mm: (K,) radii (> 0), K may be 0.
+    """
+    centres = np.asarray(centres_mm, dtype=np.float64).reshape(-1, 2)
+    radii = np.asarray(radii_mm, dtype=np.float64).reshape(-1)
+    outline = np.asarray(outline_mm, dtype=np.float64)
+    if centres.shape[0] != radii.shape[0]:
+        raise ValueError(f"hole map: {centres.shape[0]} centres but {radii.shape[0]} radii; "
+                         "give one radius per hole.")
+    if not (np.all(np.isfinite(centres)) and np.all(np.isfinite(radii)) and np.all(radii > 0)):
+        raise ValueError("hole map centres and radii must be finite, radii > 0 (leave closed "
+                         "cells out).")
+    if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3:
+        raise ValueError(f"hole map outline has shape {outline.shape}; expected (n >= 3, 2) "
+                         "points of a closed loop.")
+    import matplotlib as mpl  # _figure checks that matplotlib is there
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Circle, Polygon
+
+    width = float(np.ptp(outline[:, 0]))
+    height = float(np.ptp(outline[:, 1]))
+    scale = PLATE_INCHES / max(width, height)
+    fig = _figure(max(width * scale, 3.0) + 1.6, max(height * scale, 2.5) + 0.9)
+    ax = fig.add_subplot()
+    ax.add_patch(Polygon(outline, closed=True, facecolor="0.15", edgecolor="black",
+                         linewidth=1.0, zorder=0))
+    diameters_um = 2 * radii * UM_PER_MM
+    holes = PatchCollection([Circle((x, y), r) for (x, y), r in zip(centres, radii, strict=True)],
+                            cmap=mpl.colormaps["viridis"], linewidth=0, zorder=1)
+    holes.set_array(diameters_um)
+    if diameters_um.size:
+        low, high = float(diameters_um.min()), float(diameters_um.max())
+        holes.set_clim(low - 0.5, high + 0.5) if high - low < 1 else holes.set_clim(low, high)
+    ax.add_collection(holes)
+    if diameters_um.size:
+        fig.colorbar(holes, ax=ax, label="hole diameter (µm)", shrink=0.8)
+    if len(outline) == 5:  # outline_points_mm's loop with the chamfer at points 1 and 2
+        corner = outline[1:3].mean(axis=0)
+        ax.annotate("alignment chamfer", corner, xytext=(8, -14), textcoords="offset points",
+                    color="white", fontsize=8)
+    pad = 0.03 * max(width, height)
+    ax.set_xlim(outline[:, 0].min() - pad, outline[:, 0].max() + pad)
+    ax.set_ylim(outline[:, 1].min() - pad, outline[:, 1].max() + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm), seen from the eye")
+    ax.set_ylabel("y (mm), up")
+    ax.set_title(wrap_to_width(title or f"{radii.size} holes; plate {width:.3g} x "
+                               f"{height:.3g} mm", PLATE_INCHES, 10), fontsize=10)
+    return _png(fig)
+
+
+def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
+                  title: str = "") -> bytes:
+    """PNG of error maps |g view - target| (g: each view's least-squares gain), the mean over
+    colour channels, all on one scale (up to ERROR_SCALE_PERCENTILE of the errors), each panel
+    labelled with its mean error.
+
+    target: (C, ny, nx) or (ny, nx) linear; rows: (label, view) pairs of the target's shape.
+    """
+    if not rows:
+        raise ValueError("figure_errors got no views; give (label, view) pairs.")
+    goal = _as_rgb(target, "error map target")
+    maps = []
+    for label, view in rows:
+        image = _as_rgb(view, f"error map view {label!r}")
+        if image.shape != goal.shape:
+            raise ValueError(f"error map view {label!r} has shape {image.shape[:2]} but the "
+                             f"target has {goal.shape[:2]}.")
+        maps.append(np.abs(gain(image, goal) * image - goal).mean(axis=2))
+    top = float(np.percentile(np.stack(maps), ERROR_SCALE_PERCENTILE)) or 1.0
+    cols = min(len(rows), 4)
+    lines = math.ceil(len(rows) / cols)
+    labels = [wrap_to_width(f"{label}\nmean {m.mean():.3f}", PANEL_INCHES * 0.95,
+                            TITLE_FONT_SIZE) for (label, _), m in zip(rows, maps, strict=True)]
+    title_in = max(lab.count("\n") + 1 for lab in labels) * TITLE_FONT_SIZE * 1.3 / 72
+    fig = _figure(cols * PANEL_INCHES + 0.9, lines * (PANEL_INCHES + title_in) + 0.4)
+    if title:
+        fig.suptitle(wrap_to_width(title, cols * PANEL_INCHES, 12), fontsize=12)
+    axes = []
+    shown = None
+    for i, (label, error) in enumerate(zip(labels, maps, strict=True)):
+        ax = fig.add_subplot(lines, cols, i + 1)
+        shown = ax.imshow(error, cmap="magma", vmin=0.0, vmax=top, interpolation="nearest")
+        ax.set_title(label, fontsize=TITLE_FONT_SIZE)
+        ax.set_axis_off()
+        axes.append(ax)
+    fig.colorbar(shown, ax=axes, label="|gain x view - target| (linear)", shrink=0.8)
+    return _png(fig)

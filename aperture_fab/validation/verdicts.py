@@ -1,0 +1,248 @@
+"""The report's verdicts in plain words: each finding with its level (fail, warn, pass, or info
+for a finding without a judgement), its reason and, when it is not a pass, what to change.
+
+Pure functions, the report.json structure (aperture_fab.validation.report) in, `Verdict`s out;
+the page (aperture_fab.validation.report_html) and the terminal show them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from aperture_fab.validation.light import contrast_verdict, light_verdict
+from aperture_fab.validation.report import EYE_TOPIC, Verdict
+from aperture_fab.validation.variants import EYE_BASELINES
+
+__all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "NOT_JUDGED", "YIELD_PASS", "YIELD_WARN",
+           "describe_distribution", "eye_verdict", "tolerance_verdict", "verdicts"]
+
+#: Headline variant for verdicts: the first of these that the report holds.
+HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
+    ("as_built", "As built"), ("quantized", "After quantization"), ("optimized", "As optimized"),
+)
+#: The part's 10th-percentile PSNR within this many dB above a baseline's is a warning (amber);
+#: below it, a failure (red).
+EYE_MARGIN_DB = 1.0
+#: What the page and the terminal call each level.
+LEVEL_WORDS = {"fail": "FAIL", "warn": "WARN", "pass": "PASS", "info": "NOTE"}
+#: Tolerance yield: at least YIELD_PASS passes, at least YIELD_WARN warns, less fails.
+YIELD_PASS = 0.9
+YIELD_WARN = 0.5
+NOT_JUDGED = ("Not judged over the eye distribution (validation.eye_states = 0): every figure "
+              "below is for the nominal eye point only, which can look far better than what a "
+              "moving eye sees. Set [validation] eye_states (default 32) to judge the part over "
+              "the eye distribution.")
+
+
+# ---------------------------------------------------------------------------------------------
+# Verdicts in words
+
+
+def _mean(report: Mapping[str, Any], variant: str, key: str = "psnr_db") -> float | None:
+    block = report["metrics"].get(variant)
+    value = None if block is None else block["mean"].get(key)
+    return None if value is None else float(value)
+
+
+def _compare(difference: float, what: str) -> str:
+    return f"{abs(difference):.1f} dB {'better' if difference >= 0 else 'worse'} than {what}"
+
+
+def _range(values: Sequence[float], unit: str) -> str:
+    lo, hi = values
+    return f"{lo:g} {unit}" if lo == hi else f"{lo:g} to {hi:g} {unit}"
+
+
+def describe_distribution(distribution: Mapping[str, Any]) -> str:
+    """The eye distribution in words: eyebox, pupils, focus, gaze."""
+    w, h = distribution["eyebox_mm"]
+    box = (f"eyebox {w:g} x {h:g} mm {distribution['eyebox_shape']}" if w or h
+           else "no eyebox (a fixed pupil position)")
+    parts = [box, "pupil " + _range(distribution["pupil_range_mm"], "mm"),
+             "focus " + _range(distribution["focus_range_diopters"], "D")]
+    if distribution["gaze_deg"]:
+        parts.append(f"gaze up to {distribution['gaze_deg']:g} deg")
+    return ", ".join(parts)
+
+
+def _eye_advice(report: Mapping[str, Any]) -> str:
+    """What to change when the part does not beat the baselines over the eye distribution."""
+    plate = report["scene"]["plate"]
+    optimizer = report["config"].get("optimizer", {})
+    w, h = report["eye_distribution"]["distribution"]["eyebox_mm"]
+    steps = []
+    if optimizer.get("eye_states") == 1:
+        steps.append("design for the distribution rather than the nominal eye point "
+                     "(optimizer.eye_states > 1, as in the near-eye preset)")
+    steps.append(f"check that the eyebox ([eye] eyebox_mm = [{w:g}, {h:g}]), pupil_range_mm and "
+                 "focus_range_diopters describe the device; widen or shrink them only if they "
+                 "do not (a smaller eyebox than the device has only flatters the report)")
+    pitch = plate["pitch_mm"]
+    steps.append(f"a smaller pitch (plate.pitch_mm, now {pitch[0]:g} x {pitch[1]:g} mm) or a "
+                 f"larger gap (plate.gap_mm, now {plate['gap_mm']:g} mm), then design again")
+    if optimizer.get("tracking") != "tracked":
+        steps.append('or a tracked display (optimizer.tracking = "tracked", shown with '
+                     "`aperture-fab display`), whose content follows the tracked eye")
+    return "What to change: " + "; ".join(steps) + "."
+
+
+def eye_verdict(report: Mapping[str, Any]) -> Verdict:
+    """The leading verdict: does the part beat the baselines over the eye distribution?
+
+    Red (fail) when the part's 10th-percentile PSNR is below the open display's or the regular
+    pinhole array's for any target; amber (warn) when it is less than EYE_MARGIN_DB above one;
+    green (pass) otherwise. The worst target and baseline are named. Without the eye
+    distribution (null in the report) a note says that the figures are nominal only.
+    """
+    block = report.get("eye_distribution")
+    if block is None:
+        return Verdict(EYE_TOPIC, "info", NOT_JUDGED)
+    variants, targets = block["variants"], block["targets"]
+    part = next((v for v in ("as_built", "quantized", "optimized") if v in variants), None)
+    if part is None:
+        return Verdict(EYE_TOPIC, "info", "No part was judged over the eye distribution; "
+                       f"judged: {', '.join(variants)}.")
+    psnr = variants[part]["psnr_db"]
+    margins = []  # (margin dB, target index, baseline)
+    for t in range(len(targets)):
+        own = psnr["p10"][t]
+        for baseline, _ in EYE_BASELINES:
+            other = variants.get(baseline, {}).get("psnr_db", {}).get("p10", [None] * (t + 1))[t]
+            if own is not None and other is not None:
+                margins.append((own - other, t, baseline))
+    where = (f"Over the eye distribution ({block['states']} states: "
+             f"{describe_distribution(block['distribution'])})")
+    if not margins:
+        return Verdict(EYE_TOPIC, "info", f"{where}, no baseline was judged the same way; the "
+                       "part's 10th percentile cannot be compared.")
+    low, worst, _ = min(margins)
+    name = f" for target {targets[worst]!r}" if len(targets) > 1 else ""
+    words = "the part as built" if part == "as_built" else f"the part ({part})"
+    nominal = variants[part]["nominal_psnr_db"][worst]
+    baselines = dict(EYE_BASELINES)
+    text = (f"{where}, {words} scores {psnr['p10'][worst]:.1f} dB PSNR at the 10th percentile"
+            f"{name} (median {psnr['p50'][worst]:.1f}, 90th {psnr['p90'][worst]:.1f}"
+            + ("" if nominal is None else f"; {nominal:.1f} at the nominal eye point")
+            + "), against " + " and ".join(
+                f"{variants[b]['psnr_db']['p10'][worst]:.1f} dB for {baselines[b]} ({m:+.1f} dB)"
+                for m, t, b in margins if t == worst))
+    if low < 0:
+        beaten = " and ".join(baselines[b] for b, _ in EYE_BASELINES
+                              if any(m < 0 and key == b for m, _, key in margins))
+        return Verdict(EYE_TOPIC, "fail", text + f". Its 10th percentile is below that of "
+                       f"{beaten}: for the worst tenth of eye states the plate does no better "
+                       f"than {beaten}. " + _eye_advice(report))
+    if low < EYE_MARGIN_DB:
+        return Verdict(EYE_TOPIC, "warn", text + f". Less than {EYE_MARGIN_DB:g} dB above a "
+                       "baseline at the 10th percentile: a slightly worse part or eye loses the "
+                       "advantage. " + _eye_advice(report))
+    return Verdict(EYE_TOPIC, "pass", text + f". At least {EYE_MARGIN_DB:g} dB above every "
+                   "baseline judged the same way, for every target.")
+
+
+def tolerance_verdict(tolerance: Mapping[str, Any]) -> Verdict:
+    """Pass when at least YIELD_PASS of the tolerance samples score above the threshold, warn
+    from YIELD_WARN, fail below."""
+    threshold, share = tolerance["threshold_db"], tolerance["yield"]
+    text = (f"{100 * share:.0f} % of {tolerance['samples']} parts drawn with the process's "
+            f"tolerances score above {threshold:.1f} dB.")
+    low, median = tolerance["psnr_percentiles"]["5"], tolerance["psnr_percentiles"]["50"]
+    if low is not None and median is not None:
+        text += f" Median {median:.1f} dB; 1 part in 20 scores below {low:.1f} dB."
+    if share >= YIELD_PASS:
+        return Verdict("tolerance", "pass", text + f" At least {100 * YIELD_PASS:.0f} %.")
+    fix = (" Fix: a process with tighter tolerances (aperture-fab processes: radius and "
+           "position sigma), larger holes (the same error costs less), fabrication-aware "
+           "design (optimizer.quantize_share > 0), or, if a loss of that size is acceptable, "
+           "a lower [validation] threshold_db.")
+    if share >= YIELD_WARN:
+        return Verdict("tolerance", "warn", text + f" Below {100 * YIELD_PASS:.0f} %: some made "
+                       "parts will look worse than this report's nominal figures." + fix)
+    return Verdict("tolerance", "fail", text + f" Below {100 * YIELD_WARN:.0f} %: most made "
+                   "parts will not look like this report's nominal figures." + fix)
+
+
+def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None,
+             diffraction_hole_mm: float | None = None) -> list[Verdict]:
+    """Findings in plain language, most important first: the part over the eye distribution
+    (`eye_verdict`), the tolerance yield, then the nominal eye point's figures, fabrication and
+    mesh.
+
+    diffraction_blur_px: diffraction blur of the holes named by diffraction_hole_mm, in view
+        pixels (None: not computed, no line).
+    diffraction_hole_mm: the hole diameter that blur is for; None takes the smallest hole.
+    """
+    lines: list[Verdict] = [eye_verdict(report)]
+
+    def say(topic: str, text: str, level: str = "info") -> None:
+        lines.append(Verdict(topic, level, text))
+
+    if report["tolerance"] is not None:
+        lines.append(tolerance_verdict(report["tolerance"]))
+    photometry = report.get("photometry")
+    if photometry is not None:
+        lines += [light_verdict(photometry), contrast_verdict(photometry)]
+    head = next(((v, words) for v, words in HEADLINE_VARIANTS
+                 if _mean(report, v) is not None), None)
+    if head is not None:
+        variant, words = head
+        psnr = _mean(report, variant)
+        assert psnr is not None
+        ssim = _mean(report, variant, "ssim")
+        text = f"At the nominal eye point, {words.lower()}, the view scores {psnr:.1f} dB PSNR"
+        text += "" if ssim is None else f" (SSIM {ssim:.2f})"
+        baselines = [(_mean(report, "open"), "the open display"),
+                     (_mean(report, "regular_pinholes"), "a regular pinhole array")]
+        compared = [_compare(psnr - value, what) for value, what in baselines if value is not None]
+        say("nominal", text + (", " + " and ".join(compared) if compared else "") + ".")
+        optimized = _mean(report, "optimized")
+        if variant != "optimized" and optimized is not None:
+            cause = "Quantization and fabrication" if variant == "as_built" else "Quantization"
+            cost = optimized - psnr
+            say("fabrication cost", f"{cause} cost {cost:.1f} dB." if cost >= 0 else
+                f"{cause} cost nothing: the view is {-cost:.1f} dB better than the "
+                "optimized design's.")
+        efficiency = _mean(report, variant, "light_efficiency")
+        if efficiency is not None and photometry is None:
+            say("light", f"The eye sees {100 * efficiency:.2g} % of the light of the open "
+                "display.")
+    built = _mean(report, "as_built")
+    drawn, traced = _mean(report, "quantized"), _mean(report, "as_built_mesh")
+    if drawn is not None and traced is not None:
+        noise = report.get("mesh_retrace_stderr_rms")
+        say("mesh trace", "Traced through the written mesh (the holes as drawn), the view "
+            f"scores {traced:.1f} dB ({traced - drawn:+.1f} dB from the hole layout's)"
+            + (f"; Monte Carlo noise {noise:.2g} RMS per pixel: more rays per pixel sharpen "
+               "this check (--mesh-samples)." if noise else "."))
+    diffracted = _mean(report, "as_built_diffraction")
+    if built is not None and diffracted is not None:
+        say("diffraction", f"With diffraction, the as-built view scores {diffracted:.1f} dB "
+            f"({diffracted - built:+.1f} dB from the geometric trace).")
+    hole_mm = diffraction_hole_mm
+    if hole_mm is None:
+        hole_mm = report["fabrication"].get("smallest_hole_diameter_mm")
+    if diffraction_blur_px is not None and hole_mm is not None:
+        say("diffraction", f"Holes of {hole_mm:.3f} mm: diffraction blurs them by about "
+            f"{diffraction_blur_px:.1f} view pixels.")
+    fabrication = report["fabrication"]
+    violations = fabrication["violations"]
+    if violations:
+        counts: dict[str, int] = {}
+        for violation in violations:
+            counts[violation["rule"]] = counts.get(violation["rule"], 0) + 1
+        rules = ", ".join(f"{rule} x{n}" for rule, n in counts.items())
+        say("fabrication", f"{len(violations)} fabrication rule violations of the "
+            f"{fabrication['process']} process were resolved ({rules}); see Fabrication checks.")
+    else:
+        say("fabrication", f"The {fabrication['holes']} holes meet every rule of the "
+            f"{fabrication['process']} process.")
+    mesh = report["mesh"]
+    if mesh["watertight"]:
+        per_hole = " (one per hole)" if mesh["genus"] == fabrication["holes"] else ""
+        say("mesh", f"The mesh is watertight, genus {mesh['genus']}{per_hole}, "
+            f"{mesh['triangles']} triangles.")
+    else:
+        say("mesh", "The mesh is NOT watertight: do not print it; please report this design.",
+            "fail")
+    return lines
