@@ -325,7 +325,7 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
             write_part(stage, result.part, fabrication, formats, progress, on_written=staged)
             result.timings_s["export_s"] = time.perf_counter() - start
             if validation is not None:
-                checked = write_report(stage, result, fabrication, validation)
+                checked = write_report(stage, result, fabrication, validation, command)
                 for variant in ("quantized", "as_built"):
                     per_target = [checked.metrics[variant][name] for name in result.names]
                     result.metrics[variant] = {key: [m[key] for m in per_target]
@@ -342,7 +342,8 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
 
 
 def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
-                 settings: ValidationSettings) -> Validation:
+                 settings: ValidationSettings, command: Sequence[str] | None = None
+                 ) -> Validation:
     """Validate the part as written (plate.stl re-read from disk) and write report.json,
     views.npz and report.html; result.metrics["eye_distribution"] gets the headline over the
     eye distribution (None when not judged)."""
@@ -361,7 +362,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     shown = result.design.displays if result.built_displays is None else result.built_displays
     evidence = assemble(result.config, result.names, result.targets, shown,
                         result.design.loss_history, result.part, fabrication.process, checked,
-                        result.timings_s)
+                        result.timings_s, part_file="plate.stl", command=command)
     evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
     write_atomic(folder / "views.npz", evidence.views_npz)
     write_atomic(folder / "report.html", evidence.html)

@@ -179,7 +179,8 @@ def run_validate(
         history = np.array([checked.metrics["as_built"][names[0]]["mse"]])
     start = time.perf_counter()
     evidence = assemble(config, tuple(names), view_targets, shown, history, loaded,
-                        fabrication.process, checked, timings)
+                        fabrication.process, checked, timings, part_file=part.name,
+                        command=command)
     report = dict(evidence.report)
     report["timings_s"] = {**report["timings_s"], "report_s": time.perf_counter() - start}
     report["checked_part"] = {"path": str(part), "kind": kind, "config": str(config_path),
