@@ -262,6 +262,8 @@ def fake_report(gap_mm: float, pitch_mm: float, process: str) -> dict[str, Any]:
         "metrics": {"as_built": {"mean": {"psnr_db": p10 + 1.5,
                                           "light_efficiency": 0.1 / gap_mm / pitch_mm}}},
         "scene": {"eye": {"fov_deg": [30.0, 20.0]}},
+        "photometry": {"view_luminance_cd_m2": 50.0 / gap_mm, "retinal_illuminance_td": 80.0,
+                       "leakage": {"contrast_ratio": float("inf")}},
         "fabrication": {"holes": 100, "violations": [{"rule": "min_web"}]},
     }
 
@@ -292,9 +294,12 @@ def test_figures_from_report() -> None:
     figures = figures_from_report(fake_report(10.0, 0.5, "resin"))
     assert figures == {"eye_p10_psnr_db": 21.0, "eye_p50_psnr_db": 22.0,
                        "eye_p90_psnr_db": 23.0, "nominal_psnr_db": 22.0,
-                       "light_efficiency": pytest.approx(0.02), "fov_x_deg": 30.0,
+                       "light_efficiency": pytest.approx(0.02), "luminance_cd_m2": 5.0,
+                       "retinal_illuminance_td": 80.0, "contrast_ratio": float("inf"),
+                       "fov_x_deg": 30.0,
                        "fov_y_deg": 20.0, "hole_count": 100, "rule_violations": 1}
-    assert figures_from_report({"eye_distribution": None})["eye_p10_psnr_db"] is None
+    bare = figures_from_report({"eye_distribution": None, "photometry": None})
+    assert bare["eye_p10_psnr_db"] is None and bare["luminance_cd_m2"] is None
 
 
 def test_resume_skips_finished_and_records_failures(sweep_dir: Path,
@@ -474,6 +479,7 @@ def test_real_sweep_on_local_ray(sweep_dir: Path, capsys: pytest.CaptureFixture[
         assert row["status"] == "ok" and row["hole_count"] > 0
         assert row["eye_p10_psnr_db"] <= row["eye_p50_psnr_db"] <= row["eye_p90_psnr_db"]
         assert 0 < row["light_efficiency"] < 1 and row["fov_x_deg"] > 0
+        assert row["luminance_cd_m2"] > 0 and row["contrast_ratio"] > 1
         assert (out / "points" / row["id"] / "report.html").is_file()
     assert len((out / "pareto.csv").read_text().splitlines()) >= 2
     page = (out / "sweep.html").read_text()

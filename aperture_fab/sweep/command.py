@@ -44,8 +44,8 @@ a sweep file (TOML; paths relative to it):
 Keys are any config key (`aperture-fab design` docs: [display] [plate] [eye] [optimizer]) plus
 process.name and the [process], [fabrication] and [validation] tables' keys. Objectives:
 maximize or minimize one of eye_p10_psnr_db eye_p50_psnr_db eye_p90_psnr_db nominal_psnr_db
-light_efficiency fov_x_deg fov_y_deg hole_count rule_violations seconds. Every point is
-checked before anything runs.
+light_efficiency luminance_cd_m2 retinal_illuminance_td contrast_ratio fov_x_deg fov_y_deg
+hole_count rule_violations seconds. Every point is checked before anything runs.
 
 examples:
   aperture-fab sweep examples/sweep.toml --out outputs/sweep

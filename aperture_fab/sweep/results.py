@@ -2,9 +2,10 @@
 
 The figures come from each design job's report.json (the part as built, judged over the eye
 distribution), so the sweep ranks designs by what the validation measured, not by the
-optimizer's loss. The report has no absolute luminance (it depends on the panel's nits): its
-brightness figure is light_efficiency, the view's level as a share of the open display's, which
-multiplies the panel's luminance.
+optimizer's loss. Brightness is light_efficiency (the view's level as a share of the open
+display's) and, where the report has its photometry block, the luminance the eye sees for the
+config's panel ([photometry] panel_luminance_cd_m2), the retinal illuminance and the contrast
+left by the light the plate material leaks.
 
 Files, each written atomically: results.csv and results.parquet (every point), pareto.csv (the
 non-dominated ok points over the objectives), sweep.html (the Pareto plot, each point a link to
@@ -36,6 +37,11 @@ FIGURE_HELP: dict[str, str] = {
     "nominal_psnr_db": "PSNR after gain (dB) of the part as built at the nominal eye point",
     "light_efficiency": "view level of the part as built / open display level (brightness "
                         "share; times the panel's luminance gives the luminance seen)",
+    "luminance_cd_m2": "luminance the eye sees through the part, cd/m2, for the config's panel "
+                       "luminance and the content shown (report photometry block)",
+    "retinal_illuminance_td": "retinal illuminance, trolands (report photometry block)",
+    "contrast_ratio": "contrast left by the light the plate material leaks (report photometry "
+                      "block; inf: an opaque plate)",
     "fov_x_deg": "horizontal field of view, degrees",
     "fov_y_deg": "vertical field of view, degrees",
     "hole_count": "holes in the part",
@@ -61,12 +67,16 @@ def figures_from_report(report: Mapping[str, Any]) -> dict[str, Any]:
     psnr = eye.get("variants", {}).get("as_built", {}).get("psnr_db", {})
     fab = report.get("fabrication") or {}
     fov = report.get("scene", {}).get("eye", {}).get("fov_deg") or [None, None]
+    light = report.get("photometry") or {}
     return {
         "eye_p10_psnr_db": _mean(psnr.get("p10")),
         "eye_p50_psnr_db": _mean(psnr.get("p50")),
         "eye_p90_psnr_db": _mean(psnr.get("p90")),
         "nominal_psnr_db": metrics.get("psnr_db"),
         "light_efficiency": metrics.get("light_efficiency"),
+        "luminance_cd_m2": light.get("view_luminance_cd_m2"),
+        "retinal_illuminance_td": light.get("retinal_illuminance_td"),
+        "contrast_ratio": (light.get("leakage") or {}).get("contrast_ratio"),
         "fov_x_deg": fov[0],
         "fov_y_deg": fov[1],
         "hole_count": fab.get("holes"),
@@ -131,8 +141,8 @@ def table_rows(spec: SweepSpec, points: Sequence[Point],
 def _front(spec: SweepSpec, rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]],
                                                                    list[bool]]:
     """Rows that can be ranked (ok, every objective known) and which are on the front."""
-    ranked = [r for r in rows if r["status"] == "ok" and all(
-        r[o.figure] is not None and math.isfinite(r[o.figure]) for o in spec.objectives)]
+    ranked = [r for r in rows if r["status"] == "ok" and all(  # inf ranks; NaN cannot
+        r[o.figure] is not None and not math.isnan(r[o.figure]) for o in spec.objectives)]
     values = [[float(r[o.figure]) for o in spec.objectives] for r in ranked]
     return ranked, pareto_mask(values, [o.maximize for o in spec.objectives])
 

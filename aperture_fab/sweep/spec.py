@@ -48,8 +48,9 @@ Mode = Literal["grid", "search"]
 Direction = Literal["maximize", "minimize"]
 #: The figures each point reports (see results.FIGURE_HELP); any can be an objective.
 Figure = Literal["eye_p10_psnr_db", "eye_p50_psnr_db", "eye_p90_psnr_db", "nominal_psnr_db",
-                 "light_efficiency", "fov_x_deg", "fov_y_deg", "hole_count",
-                 "rule_violations", "seconds"]
+                 "light_efficiency", "luminance_cd_m2", "retinal_illuminance_td",
+                 "contrast_ratio", "fov_x_deg", "fov_y_deg", "hole_count", "rule_violations",
+                 "seconds"]
 FIGURES: tuple[Figure, ...] = get_args(Figure)
 MODES: tuple[Mode, ...] = get_args(Mode)
 DIRECTIONS: tuple[Direction, ...] = get_args(Direction)
