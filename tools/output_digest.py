@@ -4,7 +4,8 @@ Runs `aperture-fab design` (small, seeded, every format), `validate` and `render
 folder and prints one SHA-256 per file. Fields that legitimately differ between two runs of
 the same code are normalized first: stage timings and package versions, the report's digest
 of them, the 3MF zip timestamps, the manifest's time and hashes, the DXF header (dates, GUIDs),
-the STEP header date, the work folder's path.
+the STEP header date, the report's date (report.json's run.date and the page's header), the
+work folder's path.
 
     python tools/output_digest.py --work /tmp/digest > before.txt
     (change the code)
@@ -27,6 +28,7 @@ DESIGN_FLAGS = ["--iterations", "12", "--view-pixels", "48", "48", "--tolerance-
                 "--mesh-samples", "8", "--step", "--quiet", "--seed", "7"]
 TIMING_SECTION = re.compile(r'<section id="timings">.*?</section>', re.DOTALL)
 REPORT_DIGEST = re.compile(r"report digest [0-9a-f]+")
+REPORT_DATE = re.compile(r'<span class="date">[^<]*</span>')
 DXF_ENTITIES = re.compile(rb"\n\s*2\r?\nENTITIES\r?\n.*?\nENDSEC", re.DOTALL)
 STEP_DATE = re.compile(rb"FILE_NAME\('([^']*)','[^']*'")
 
@@ -47,6 +49,7 @@ def normalized(path: Path, work: Path) -> bytes:
         report = json.loads(data)
         report.pop("timings_s", None)
         report.pop("versions", None)  # the installed packages, not the code's behaviour
+        report.get("run", {}).pop("date", None)
         return json.dumps(report, sort_keys=True).encode()
     if path.name == "manifest.json":
         # Its time and its files' hashes (of timings, dates) vary; each file has its own line.
@@ -56,6 +59,7 @@ def normalized(path: Path, work: Path) -> bytes:
         return json.dumps(manifest, sort_keys=True).encode()
     if path.suffix == ".html":
         text = TIMING_SECTION.sub("", data.decode())
+        text = REPORT_DATE.sub('<span class="date">-</span>', text)
         return REPORT_DIGEST.sub("", text).encode()
     return data
 
