@@ -641,11 +641,24 @@ HOOK = ("window.addEventListener('load', () => { const images = [...document.ima
 CHROMIUM = "/usr/bin/chromium"
 
 
-def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:
-    """Load `page` in headless Chromium with HOOK appended: (images decoded, images)."""
+def chromium() -> str:
+    """The headless Chromium executable; skips the test when there is none."""
     browser = shutil.which("chromium") or (CHROMIUM if Path(CHROMIUM).exists() else None)
     if browser is None:
         pytest.skip("headless Chromium is not installed (Debian: apt-get install -y chromium)")
+    return browser
+
+
+def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:
+    """Load `page` in headless Chromium with HOOK appended: (images decoded, images)."""
+    ok, total, _ = chromium_dom(page, folder)
+    return ok, total
+
+
+def chromium_dom(page: str, folder: Path) -> tuple[int, int, str]:
+    """Load `page` in headless Chromium with HOOK appended: (images decoded, images, the DOM
+    after loading)."""
+    browser = chromium()
     # The page's Content-Security-Policy forbids scripts; let exactly this hook run, so the
     # images are also checked to load under the page's own policy.
     digest = base64.b64encode(hashlib.sha256(HOOK.encode()).digest()).decode()
@@ -670,7 +683,7 @@ def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:
     ok = re.search(r'data-images-ok="(\d+)"', result.stdout)
     total = re.search(r'data-images-total="(\d+)"', result.stdout)
     assert ok and total, f"the hook did not run; stderr: {result.stderr[-2000:]}"
-    return int(ok[1]), int(total[1])
+    return int(ok[1]), int(total[1]), result.stdout
 
 
 @pytest.mark.slow
