@@ -172,7 +172,7 @@ def contrast_verdict(block: Mapping[str, Any]) -> Verdict:
     source = "an estimate" if "estimate" in note else note.split(".")[0]
     text = (f"The plate material (optical density {leak['optical_density']:g}, {source}) "
             f"passes 10^-{leak['optical_density']:g} of the light over the "
-            f"{percent(1 - leak['open_share'])} of the plate that is solid: {share_text} the "
+            f"{percent(1 - leak['open_share'], 3)} of the plate that is solid: {share_text} the "
             f"light through the holes, a veil that limits the contrast to {ratio_text}.")
     if share is None or share > LEAKAGE_WARN_SHARE:
         return Verdict(CONTRAST_TOPIC, "warn", text + (

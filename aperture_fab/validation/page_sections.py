@@ -138,7 +138,7 @@ def light_html(photometry: Mapping[str, Any] | None) -> str:
     leak_rows = [
         ("optical density of the plate material", f"{leak['optical_density']:g}"),
         ("its source", e(leak["optical_density_note"])),
-        ("solid share of the plate", percent(1 - leak["open_share"])),
+        ("solid share of the plate", percent(1 - leak["open_share"], 3)),
         ("leakage (light through the material / through the holes)",
          "unbounded" if share is None else percent(share)),
         ("contrast ratio (white over the veil)", "unlimited" if ratio is None

@@ -273,7 +273,8 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
         "plate": _img(figures, "hole_map") + pairs(report["scene"]["plate"]),
         "display": display_html(displays, report["scene"]["display"]),
         "loss": _img(figures, "loss"),
-        "eyebox": _img(figures, "eyebox"),
+        "eyebox": _img(figures, "eyebox", "One nominal eye position only (eye.positions_mm): "
+                       "the eye distribution above shows the part across the eyebox."),
         "tolerance": (f'<p class="muted">Tolerance analysis {NOT_COMPUTED}.</p>'
                       if tolerance is None else
                       _img(figures, "tolerance") + tolerance_table(tolerance)),
