@@ -468,7 +468,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         for v in layout.violations[:10]:
             print(f"  {v.rule}" + ("" if v.cell is None else f" cell {v.cell}")
                   + f": {v.resolution}")
-    return 0
+    return EXIT_OK
 
 
 def _cmd_assembly(args: argparse.Namespace) -> int:
