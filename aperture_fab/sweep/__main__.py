@@ -14,7 +14,7 @@ EXIT_CANNOT_WRITE = 4
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m aperture_fab.sweep")
+    parser = argparse.ArgumentParser(prog="aperture-fab")  # usage reads "aperture-fab sweep"
     sub = parser.add_subparsers(dest="command")
     add_parser(sub)
     args = parser.parse_args(["sweep", *(sys.argv[1:] if argv is None else argv)])
