@@ -25,7 +25,7 @@ EXIT_CODES_HELP = f"""\
 exit status:
   {EXIT_OK}    success
   {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
-       anyway), or the optimization diverged
+       anyway), or the optimization diverged; for `sweep`, some points failed
   {EXIT_USAGE}    usage error: an unknown command or flag, or a flag's value of the wrong type
   {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
   {EXIT_CANNOT_WRITE}    a file could not be written or read (no permission, disk full, read-only)
@@ -712,6 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_presets)
     p = sub.add_parser("processes", help="list the fabrication processes and their rules")
     p.set_defaults(func=_cmd_processes)
+    from aperture_fab.sweep.command import add_parser as add_sweep_parser
+
+    add_sweep_parser(sub)
     for command in sub.choices.values():
         _add_output_flags(command)
     return parser

@@ -20,6 +20,7 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "validation": ("pipeline", "sweep", "cli"),
     "metrics": ("optics", "optimize", "fabrication", "validation", "pipeline", "sweep", "cli"),
     "pipeline": ("sweep", "cli"),
+    "sweep": ("cli",),
 }
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import secrets
 import shutil
 import socket
 import tempfile
@@ -31,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from aperture_fab.io.files import write_atomic
 from aperture_fab.sweep.results import figures_from_report, summary_line
 from aperture_fab.sweep.spec import (
     Choice,
@@ -43,7 +43,7 @@ from aperture_fab.sweep.spec import (
 )
 
 __all__ = ["Backend", "RunOptions", "Job", "SweepOutcome", "run_sweep", "run_point",
-           "load_record", "write_atomic", "require"]
+           "load_record", "require"]
 
 Backend = Literal["ray", "serial"]
 Status = Literal["ok", "failed"]
@@ -66,37 +66,12 @@ def require(module: str) -> Any:
                           f"{EXTRA}") from err
 
 
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write via a temporary file in the same folder and os.replace: never a truncated file."""
-    payload = data.encode() if isinstance(data, str) else data
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        tmp.write_bytes(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def _first(module_names: tuple[str, ...], name: str) -> Any:
-    """`name` from the first module that has it (the package's layout has moved before)."""
-    import importlib
-
-    for module_name in module_names:
-        try:
-            return getattr(importlib.import_module(module_name), name)
-        except (ImportError, AttributeError):
-            continue
-    raise ImportError(f"cannot find {name} in {', '.join(module_names)}")
-
-
 def _stage_settings(extra: Any) -> tuple[Any, Any]:
     """Fabrication and validation settings from a config's extra tables ([process],
     [fabrication], [validation])."""
-    fabrication_settings = _first(("aperture_fab.fabrication", "aperture_fab.fabrication.part",
-                                   "aperture_fab.fabricate"), "fabrication_settings")
-    validation_settings = _first(("aperture_fab.validation", "aperture_fab.validation.validate",
-                                  "aperture_fab.validate"), "validation_settings")
+    from aperture_fab.fabrication.part import fabrication_settings
+    from aperture_fab.validation.validate import validation_settings
+
     return fabrication_settings(extra), validation_settings(extra)
 
 
