@@ -405,7 +405,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
     try:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
                             validation=validation, resume=args.resume, progress=output.progress,
-                            command=args.command_line)
+                            command=args.command_line, stage=output.stage)
     except Interrupted as stop:
         output.interrupted(f"at iteration {stop.state['iteration']} (Ctrl-C); checkpoint saved in "
                            f"{folder}. Continue with the same command and --resume.")

@@ -290,7 +290,8 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                fabrication: FabricationSettings | None = None,
                validation: ValidationSettings | None = None, resume: bool = False,
                progress: bool = True, command: Sequence[str] | None = None,
-               on_staged: Callable[[Path], None] | None = None) -> DesignResult:
+               on_staged: Callable[[Path], None] | None = None,
+               stage: Callable[[str], None] | None = None) -> DesignResult:
     """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint.
 
     Every check and all the computation come before the folder is touched (only the
@@ -299,7 +300,10 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     (aperture_fab.io.manifest). command: recorded in the manifest (default: this function).
     on_staged: a testing seam, called with the staging folder after each group of files is
     staged (tests pause there to kill the process mid-export); None in normal use.
+    stage: told each later stage as it starts, in words (the CLI prints them in a log, where
+    there are no progress bars).
     """
+    announce = stage if stage is not None else (lambda _line: None)
     folder = output_folder(out)
     images, names = load_targets(paths)
     inputs = input_digests(paths, config, fabrication)
@@ -317,26 +321,31 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     result = dataclasses.replace(
         result, config=recorded_config(config, fabrication, formats, outline))
     staged = on_staged if on_staged is not None else (lambda _stage: None)
-    with staging(folder) as stage:
-        write_outputs(stage, result)
-        staged(stage)
+    with staging(folder) as stage_folder:
+        write_outputs(stage_folder, result)
+        staged(stage_folder)
         if result.part is not None and fabrication is not None:
+            announce(f"design: writing {', '.join(formats)} ({result.part.layout.count} holes)")
             start = time.perf_counter()
-            write_part(stage, result.part, fabrication, formats, progress, on_written=staged)
+            write_part(stage_folder, result.part, fabrication, formats, progress,
+                       on_written=staged)
             result.timings_s["export_s"] = time.perf_counter() - start
             if validation is not None:
-                checked = write_report(stage, result, fabrication, validation, command)
+                announce("design: validating the part as written (eye distribution, mesh "
+                         "re-trace, tolerances)")
+                checked = write_report(stage_folder, result, fabrication, validation, command)
                 for variant in ("quantized", "as_built"):
                     per_target = [checked.metrics[variant][name] for name in result.names]
                     result.metrics[variant] = {key: [m[key] for m in per_target]
                                                for key in ("mse", "psnr_db")}
-                write_summary(stage, result)  # design.json again, with the validated figures
-                staged(stage)
+                write_summary(stage_folder, result)  # design.json again, with the validated figures
+                staged(stage_folder)
         if result.part is not None and fabrication is not None:  # assembly.html
             from aperture_fab.pipeline.assembly_job import write_assembly
-            write_assembly(stage, result.part, result.config, fabrication, result.names,
+
+            write_assembly(stage_folder, result.part, result.config, fabrication, result.names,
                            folder.resolve().name)
-        publish(stage, folder, command if command is not None else DEFAULT_COMMAND)
+        publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
     checkpoint.unlink(missing_ok=True)
     return result
 
