@@ -33,6 +33,7 @@ from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.photometry import photometry_settings
 from aperture_fab.optimize.optimizer import (
     Interrupted,
     MaskDesign,
@@ -106,6 +107,7 @@ def design(
     `fabrication`, designed within what its process can make and made into a part."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
+    photometry_settings(config.extra)  # a bad [photometry] table is refused before the work
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
     bounds = made = None
@@ -377,6 +379,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     write_atomic(folder / "report.html", evidence.html)
     write_atomic(folder / "report.json", report_json(evidence.report))
     result.metrics["eye_distribution"] = eye_headline(evidence.report)
+    result.metrics["verdicts"] = evidence.report["verdicts"]
     return checked
 
 
