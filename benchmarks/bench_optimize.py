@@ -89,7 +89,7 @@ import torch
 
 import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.config.config import Config, resolve
-from aperture_fab.io.images import is_grey, resample
+from aperture_fab.io.images import prepare_targets, resample
 from aperture_fab.optics import kernels
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import EyeStates, distribution_of
@@ -220,15 +220,6 @@ def case_config(case: Case, device: str, iterations: int, quick: bool = False) -
         "optimizer.plateau_patience": 0,
         "optimizer.checkpoint_every": 1,
     })
-
-
-def prepare_target(config: Config, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One target on the view grid (1, C, ny, nx) and on the display grid (1, C, H, W), one
-    channel when grey: what aperture_fab.pipeline.design_job does before optimizing."""
-    im = image[:1] if is_grey(image) else image
-    scene = config.scene
-    return (resample(im, scene.eye.view_pixels)[None],
-            resample(im, scene.display.pixels)[None])
 
 
 # -- memory ---------------------------------------------------------------------------------------
@@ -515,7 +506,8 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
     config = case_config(case, str(device), warmup + iterations, quick)
     scene, settings = config.scene, config.optimizer
     dtype = torch.float64 if settings.precision == "float64" else torch.float32
-    views, shown = prepare_target(config, EXAMPLES[case.target]())
+    views, shown = prepare_targets([EXAMPLES[case.target]()], config.scene.eye.view_pixels,
+                                   config.scene.display.pixels)
     states = training_states(scene, settings, warmup)
     estimate = budget.estimate(scene, len(states), "kernel" if backend == "kernel" else "torch",
                                settings.precision, channels=views.shape[1],

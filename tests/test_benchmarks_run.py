@@ -119,21 +119,6 @@ def test_kernel_pairs_and_bytes(bench_optimize: ModuleType) -> None:
     assert model["forward_read"] == pairs * 8 * 3 * 4
 
 
-def test_prepare_target_matches_pipeline(bench_optimize: ModuleType) -> None:
-    """The benchmark's targets are what pipeline.design would optimize for (grey: 1 channel)."""
-    from aperture_fab.io.images import resample
-    from aperture_fab.targets import EXAMPLES
-
-    config = bench_optimize.case_config(bench_optimize.CASES["seed-28"], "cpu", 1)
-    image = EXAMPLES["digit-3"]()
-    views, shown = bench_optimize.prepare_target(config, image)
-    assert views.shape == (1, 1, 28, 28)
-    assert shown.shape == (1, 1, 28, 28)
-    assert views[0, 0] == pytest.approx(resample(image, (28, 28))[0])
-    colour_views, _ = bench_optimize.prepare_target(config, EXAMPLES["natural"]())
-    assert colour_views.shape == (1, 3, 28, 28)
-
-
 @pytest.mark.slow
 def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
                               capsys: pytest.CaptureFixture[str]) -> None:
@@ -237,6 +222,19 @@ def test_bench_end_to_end_quick(tmp_path: Path) -> None:
     for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
         assert stage in stages and stages[stage] >= 0, stage
     assert figures["median_wall_s"] >= sum(stages.values())  # the stages run one after another
+
+
+@pytest.mark.slow
+def test_bench_light_quick_prices_the_floor(tmp_path: Path) -> None:
+    bench = _load("bench_light")
+    out = tmp_path / "light.json"
+    rows = bench.main(["--quick", "--json", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(rows))
+    assert [row["floor"] for row in rows] == bench.QUICK["floors"]
+    assert rows[1]["efficiency"] > rows[0]["efficiency"]  # the floor bought light
+    for row in rows:
+        assert row["regime"] in ("photopic", "mesopic", "scotopic")
+        assert row["psnr_db"]["p10"] <= row["psnr_db"]["p50"] <= row["psnr_db"]["p90"]
 
 
 @pytest.mark.slow
