@@ -14,6 +14,14 @@ so it meets the plate top face at s = e, the bottom face at s = e + t, the displ
 A view pixel's value is the mean, over its tan-box and the pupil disk (both uniform), of the
 display radiance where the ray lands, times 1 if the ray passes one hole at both plate faces.
 
+Display-side optics, each ray exactly: a cover glass of thickness t_g and index n fills
+0 <= z <= t_g (inside the gap); a ray refracts at its top face (Snell: sin(theta) = n
+sin(theta_g), the angle theta in air from its slope) and runs on at the glass angle to the
+emitting surface at z = 0. Striped sub-pixels: channel c of a pixel emits only from its vertical
+stripe, a third of the pixel wide, centred (c - 1) / 3 pixel right of the pixel centre for
+"rgb_stripe" (left for "bgr_stripe"), at three times the pixel's value (the same light per
+pixel). Emission falloff: radiance times cos(theta)^k, theta the ray's angle in air.
+
 Sampling: per view pixel, the 4-D unit cube (v in box: 2 dims, pupil radius^2 and angle: 2 dims)
 is cut into k^4 equal strata, each sampled with the same number of uniform jittered points.
 Equal-allocation stratified sampling never has a larger variance than independent uniform
@@ -70,13 +78,19 @@ def trace_view(
     samples_per_pixel: int = 4096,
     seed: int = 0,
     plate: bool = True,
+    cover_glass_mm: float = 0.0,
+    cover_glass_index: float = 1.5,
+    subpixels: str = "none",
+    emission_exponent: float = 0.0,
 ) -> np.ndarray:
     """The eye's view, shape (C, ny_view, nx_view) float64, linear radiance.
 
     display: (C, ny, nx) radiance; display_size_mm: (W, H); radii_mm: (ny_c, nx_c), 0 = closed;
     pitch_mm: (px, py); hole_axis: "straight" or "chief_ray"; focus_mm: None = infinity;
     fov_deg: full field of view (x, y); view_pixels: (nx_view, ny_view), uniform in tan;
-    plate=False traces the open display (no plate at all).
+    plate=False traces the open display (no plate at all); cover_glass_mm (0: none),
+    cover_glass_index, subpixels ("none", "rgb_stripe", "bgr_stripe") and emission_exponent
+    (0: Lambertian): the display-side optics of the module docstring.
     """
     for name, angle in (("fov_deg[0]", fov_deg[0]), ("fov_deg[1]", fov_deg[1])):
         if not 0.0 < angle < MAX_FOV_DEG:
@@ -92,6 +106,8 @@ def trace_view(
         tan_x_range=(-tan_x, tan_x), tan_y_range=(-tan_y, tan_y), view_pixels=view_pixels,
         eye_position_mm=eye_position_mm, tilt_target_mm=tilt_target_mm,
         samples_per_pixel=samples_per_pixel, seed=seed, plate=plate,
+        cover_glass_mm=cover_glass_mm, cover_glass_index=cover_glass_index,
+        subpixels=subpixels, emission_exponent=emission_exponent,
     )  # fmt: skip
 
 
@@ -114,6 +130,10 @@ def trace_tan_window(
     samples_per_pixel: int = 4096,
     seed: int = 0,
     plate: bool = True,
+    cover_glass_mm: float = 0.0,
+    cover_glass_index: float = 1.5,
+    subpixels: str = "none",
+    emission_exponent: float = 0.0,
 ) -> np.ndarray:
     """Like trace_view, but over any tan-rectangle: tan_x_range, tan_y_range = (lo, hi), (lo, hi).
 
@@ -124,6 +144,13 @@ def trace_tan_window(
         display, display_size_mm, radii_mm, pitch_mm, gap_mm, thickness_mm, hole_axis, pupil_mm,
         eye_relief_mm, focus_mm, tan_x_range, tan_y_range, view_pixels, samples_per_pixel,
     )  # fmt: skip
+    if not (0.0 <= cover_glass_mm < gap_mm and 1.0 <= cover_glass_index):
+        raise ValueError(f"cover_glass_mm = {cover_glass_mm!r}, cover_glass_index = "
+                         f"{cover_glass_index!r}; allowed: 0 <= glass < gap_mm, index >= 1.")
+    if subpixels not in SUBPIXEL_ORDER:
+        raise ValueError(f"subpixels = {subpixels!r}; allowed: {tuple(SUBPIXEL_ORDER)}.")
+    if not (math.isfinite(emission_exponent) and emission_exponent >= 0):
+        raise ValueError(f"emission_exponent = {emission_exponent!r}; allowed: >= 0.")
     display = np.asarray(display, dtype=np.float64)
     radii = np.asarray(radii_mm, dtype=np.float64)
     nx_view, ny_view = view_pixels
@@ -164,10 +191,18 @@ def trace_tan_window(
         start_x = eye_position_mm[0] + ux
         start_y = eye_position_mm[1] + uy
 
+        # In air down to the glass's top face, then at the refracted angle through the glass.
+        glass_x, glass_y = _glass_slopes(slope_x, slope_y, cover_glass_index)
+        depth_glass = depth_display - cover_glass_mm
         radiance = _display_radiance(
             display, display_size_mm,
-            start_x + depth_display * slope_x, start_y + depth_display * slope_y,
+            start_x + depth_glass * slope_x + cover_glass_mm * glass_x,
+            start_y + depth_glass * slope_y + cover_glass_mm * glass_y,
+            subpixels,
         )  # fmt: skip
+        if emission_exponent > 0:
+            cos_air = 1.0 / np.sqrt(1.0 + slope_x**2 + slope_y**2)
+            radiance = radiance * cos_air[None] ** emission_exponent
         if plate:
             passes = _passes_plate(
                 radii, pitch_mm, gap_mm, thickness_mm, hole_axis, eye_relief_mm, tilt_target_mm,
@@ -233,16 +268,41 @@ def _passes_plate(
     return passes
 
 
+def _glass_slopes(slope_x: np.ndarray, slope_y: np.ndarray, index: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The ray's lateral slopes inside glass of `index`, by Snell's law at a face normal to z."""
+    tan_air = np.hypot(slope_x, slope_y)
+    sin_air = tan_air / np.sqrt(1.0 + tan_air**2)
+    sin_glass = sin_air / index
+    tan_glass = sin_glass / np.sqrt(1.0 - sin_glass**2)
+    ratio = np.divide(tan_glass, tan_air, out=np.full_like(tan_air, 1.0 / index),
+                      where=tan_air > 0)
+    return slope_x * ratio, slope_y * ratio
+
+
+#: Each channel's stripe centre, in pixels right of the pixel centre, per layout.
+SUBPIXEL_ORDER = {"none": None, "rgb_stripe": (-1.0, 0.0, 1.0), "bgr_stripe": (1.0, 0.0, -1.0)}
+STRIPES = 3
+
+
 def _display_radiance(
-    display: np.ndarray, display_size_mm: tuple[float, float], x: np.ndarray, y: np.ndarray
+    display: np.ndarray, display_size_mm: tuple[float, float], x: np.ndarray, y: np.ndarray,
+    subpixels: str = "none",
 ) -> np.ndarray:
-    """Radiance (C, *x.shape) of the piecewise-constant display at (x, y); 0 off the display."""
+    """Radiance (C, *x.shape) of the piecewise-constant display at (x, y); 0 off the display.
+    Striped sub-pixels (3 channels): channel c is lit, at 3 times its value, only on its stripe."""
     _, ny, nx = display.shape
     width, height = display_size_mm
-    col = np.floor((x + width / 2.0) / width * nx).astype(np.int64)
+    col_f = (x + width / 2.0) / width * nx
+    col = np.floor(col_f).astype(np.int64)
     row = np.floor((height / 2.0 - y) / height * ny).astype(np.int64)
     on_display = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
     values = display[:, np.clip(row, 0, ny - 1), np.clip(col, 0, nx - 1)]
+    order = SUBPIXEL_ORDER[subpixels]
+    if order is not None and display.shape[0] == STRIPES:
+        within = col_f - col - 0.5  # position in the pixel, -0.5 to 0.5
+        stripes = [np.abs(within - o / STRIPES) < 0.5 / STRIPES for o in order]
+        values = values * STRIPES * np.stack(stripes)
     return np.where(on_display[None], values, 0.0)
 
 

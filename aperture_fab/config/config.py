@@ -6,7 +6,9 @@ overrides
 file; what it leaves out comes from the preset.
 
     preset = "near-eye"          # optional; the `preset` argument (CLI --preset) wins over it
-    [display]   width_mm, height_mm, pixels = [nx, ny]
+    [display]   width_mm, height_mm, pixels = [nx, ny], cover_glass_mm, cover_glass_index,
+                subpixels = "none" | "rgb_stripe" | "bgr_stripe",
+                emission = "lambertian" | "cosine_power", emission_exponent
     [plate]     cells = [nx, ny], pitch_mm = [px, py] or one number, gap_mm, thickness_mm,
                 hole_axis
     [eye]       pupil_mm, eye_relief_mm, focus_mm = "infinity" | number,
@@ -54,13 +56,23 @@ from aperture_fab.config.settings import (
     OptimizerSettings,
 )
 from aperture_fab.optics.eyes import EYEBOX_SHAPES
-from aperture_fab.optics.scene import HOLE_AXES, Display, Eye, Plate, Scene, display_fov_deg
+from aperture_fab.optics.scene import (
+    EMISSIONS,
+    HOLE_AXES,
+    SUBPIXEL_LAYOUTS,
+    Display,
+    Eye,
+    Plate,
+    Scene,
+    display_fov_deg,
+)
 
 __all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]
 
 #: The keys each known section allows, in the order `to_toml` writes them.
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "display": ("width_mm", "height_mm", "pixels"),
+    "display": ("width_mm", "height_mm", "pixels", "cover_glass_mm", "cover_glass_index",
+                "subpixels", "emission", "emission_exponent"),
     "plate": ("cells", "pitch_mm", "gap_mm", "thickness_mm", "hole_axis"),
     "eye": ("pupil_mm", "eye_relief_mm", "focus_mm", "fov_deg", "view_pixels", "positions_mm",
             "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
@@ -85,6 +97,7 @@ _FLOATS = {
     "optimizer.efficiency_weight", "optimizer.min_efficiency", "optimizer.plateau_tolerance",
     "optimizer.quantize_share",
     "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
+    "display.cover_glass_mm", "display.cover_glass_index", "display.emission_exponent",
 }
 _WHOLES = {
     "optimizer.iterations", "optimizer.plateau_patience", "optimizer.seed",
@@ -93,6 +106,8 @@ _WHOLES = {
 _WHOLE_PAIRS = {"display.pixels", "plate.cells", "eye.view_pixels"}
 #: Text keys and their choices (None: free text, checked by the dataclass).
 _TEXTS: dict[str, tuple[str, ...] | None] = {
+    "display.subpixels": SUBPIXEL_LAYOUTS,
+    "display.emission": EMISSIONS,
     "plate.hole_axis": HOLE_AXES,
     "eye.eyebox_shape": EYEBOX_SHAPES,
     "optimizer.tracking": TRACKINGS,
@@ -469,13 +484,23 @@ def _range_value(bounds: tuple[float, float] | None) -> Any:
     return NOMINAL if bounds is None else list(bounds)
 
 
+#: Display-side optics keys and their "off" values: `to_dict` writes each only when it differs,
+#: so the config of a display without them reads as it did before they existed.
+_DISPLAY_OPTICS_DEFAULTS = {"cover_glass_mm": 0.0, "cover_glass_index": 1.5,
+                            "subpixels": "none", "emission": "lambertian",
+                            "emission_exponent": 1.0}
+
+
 def to_dict(config: Config) -> dict[str, Any]:
-    """The fully resolved config as plain dicts and lists, in the TOML file's shape."""
+    """The fully resolved config as plain dicts and lists, in the TOML file's shape (the
+    display-side optics keys only where they differ from their defaults)."""
     display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
     opt = config.optimizer
+    optics = {key: getattr(display, key) for key, off in _DISPLAY_OPTICS_DEFAULTS.items()
+              if getattr(display, key) != off}
     sections: dict[str, dict[str, Any]] = {
         "display": {"width_mm": display.width_mm, "height_mm": display.height_mm,
-                    "pixels": list(display.pixels)},
+                    "pixels": list(display.pixels), **optics},
         "plate": {"cells": list(plate.cells), "pitch_mm": list(plate.pitch_mm),
                   "gap_mm": plate.gap_mm, "thickness_mm": plate.thickness_mm,
                   "hole_axis": plate.hole_axis},

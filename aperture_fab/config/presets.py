@@ -74,9 +74,20 @@ _NOMINAL_EYE: dict[str, Any] = {
     "rotation_mm": 11.0,
 }
 
+#: The [display] optics keys of a display without them: no cover glass (its index unused),
+#: every channel filling the pixel, Lambertian emission (docs/model.md "Display-side optics").
+_PLAIN_DISPLAY: dict[str, Any] = {
+    "cover_glass_mm": 0.0,
+    "cover_glass_index": 1.5,
+    "subpixels": "none",
+    "emission": "lambertian",
+    "emission_exponent": 1.0,
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     "near-eye": {
-        "display": {"width_mm": 20.0, "height_mm": 20.0, "pixels": [400, 400]},
+        "display": {"width_mm": 20.0, "height_mm": 20.0, "pixels": [400, 400],
+                    **_PLAIN_DISPLAY},
         "plate": {
             "cells": [80, 80],
             "pitch_mm": [0.25, 0.25],
@@ -128,6 +139,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "width_mm": _SEED_WIDTH_MM,
             "height_mm": _SEED_HEIGHT_MM,
             "pixels": [_SEED_CELLS, _SEED_CELLS],
+            **_PLAIN_DISPLAY,
         },
         "plate": {
             "cells": [_SEED_CELLS, _SEED_CELLS],

@@ -20,7 +20,10 @@ plate's bottom face (mm), top-to-bottom scale m, window scale mu, level scale (m
 w the stack's largest window radius), 1 / (pi R_b^2), and the distance from the footprint
 centre within which a hole's bottom disk must lie, R_b + 2 r_max (mm); `extra` widens the hole
 search by the chief-ray tilt and the largest hole displacement.
-`geometry` holds the scene's constants in the order of GEOMETRY_FIELDS.
+`geometry` holds the scene's constants in the order of GEOMETRY_FIELDS; its last three are the
+display-side optics (cover glass thickness and index, emission exponent k; 0 thickness and 0 k:
+off, and then nothing changes): the glass moves a pair's window by its refraction shift, the
+falloff weighs its sample by cos^k, both at the pair's chief ray (docs/model.md).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ __all__ = [
 GEOMETRY_FIELDS = (
     "cells_x", "cells_y", "pitch_x", "pitch_y", "thickness", "chief_ray", "eye_x", "eye_y",
     "axis_length", "s_bottom", "s_top", "s_display", "half_width", "half_height",
-    "pixel_x", "pixel_y", "pad",
+    "pixel_x", "pixel_y", "pad", "cover_glass", "glass_index", "emission_power",
 )
 STATE_FIELDS = ("cx", "cy", "pupil_bottom", "top_scale", "window_scale", "level_scale", "norm",
                 "keep")
@@ -59,8 +62,11 @@ def thread_count() -> int:
 
 _inline = njit(cache=True, error_model="numpy", fastmath=_FAST, inline="always")
 _parallel = njit(cache=True, error_model="numpy", fastmath=_FAST, parallel=True)
-#: Columns of the per-view pair cache: `_pair`'s ten values and the lens's equal-area radius.
-_CACHE_FIELDS = 11
+#: Columns of the per-view pair cache: `_pair`'s first ten values, the lens's equal-area radius
+#: and the pair's emission weight (`_pair`'s last value).
+_CACHE_FIELDS = 12
+_LENS_R = 10
+_EMISSION = 11
 
 
 @_inline
@@ -186,9 +192,9 @@ def _taps(shape, col, row, level):
 
 
 @_inline
-def _sample(stack, col, row, level, samples, slopes, n):
+def _sample(stack, col, row, level, samples, slopes, n, scale):
     """Trilinear stack sample into samples[n] (C,) and its slope along the level axis (per unit
-    level index) into slopes[n]."""
+    level index) into slopes[n], both times `scale` (the pair's emission weight)."""
     l0, wl, x0, x1, y0, y1, w00, w01, w10, w11 = _taps(stack.shape, col, row, level)
     for c in range(stack.shape[3]):
         lo = (w00 * stack[l0, y0, x0, c] + w01 * stack[l0, y0, x1, c]
@@ -197,6 +203,10 @@ def _sample(stack, col, row, level, samples, slopes, n):
               + w10 * stack[l0 + 1, y1, x0, c] + w11 * stack[l0 + 1, y1, x1, c])
         samples[n, c] = lo + wl * (hi - lo)
         slopes[n, c] = hi - lo
+    if scale != 1.0:
+        for c in range(stack.shape[3]):
+            samples[n, c] *= scale
+            slopes[n, c] *= scale
 
 
 @_inline
@@ -217,11 +227,32 @@ def _scatter(grad_stack, b, col, row, level, g, n):
 
 
 @_inline
+def _display_optics(geometry, wx, wy, sx, sy):
+    """The window centre (wx, wy) mm on the emitting surface moved by the cover glass, and the
+    emission weight cos^k, for a chief ray of slope (sx, sy) in air (docs/model.md): in glass
+    of index n the slope is w / sqrt(n^2 + (n^2 - 1) |w|^2) (Snell), so the ray lands short of
+    its straight continuation by t_g w (1 - that factor)."""
+    tan2 = sx * sx + sy * sy
+    t_g = geometry[17]
+    if t_g > 0.0:
+        n2 = geometry[18] * geometry[18]
+        loss = t_g * (1.0 - 1.0 / math.sqrt(n2 + (n2 - 1.0) * tan2))
+        wx -= loss * sx
+        wy -= loss * sy
+    emission = 1.0
+    if geometry[19] > 0.0:
+        emission = (1.0 + tan2) ** (-geometry[19] / 2.0)
+    return wx, wy, emission
+
+
+@_inline
 def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
     """Pair (view direction v, hole (i, j)) for eye state s, into a cache row: (bottom-face
-    centre x, y, lens centre x, y, area, d area / d r, stack column, row, level, d level / d r).
-    With `shared` (every state focused at infinity: m = mu = 1) nothing here depends on the
-    state: the lens and its window are the same for every pupil position."""
+    centre x, y, lens centre x, y, area, d area / d r, stack column, row, level, d level / d r,
+    emission weight). With `shared` (every state focused at infinity: m = mu = 1) nothing here
+    depends on the state: the lens and its window are the same for every pupil position.
+    Display-side optics (cover glass, emission falloff) act at the pair's chief ray, of slope
+    (window - lens centre) / gap in air: v itself when shared."""
     hx, hy, ax, ay, k = _hole(geometry, offsets, i, j)
     t = geometry[4]
     bx = hx - t / 2 * ax
@@ -234,9 +265,14 @@ def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
         lx = bx + dx / 2
         ly = by + dy / 2
         gap = geometry[11] - geometry[9]
-        col, row = _pixel(geometry, lx + gap * vx, ly + gap * vy)
+        wx = lx + gap * vx
+        wy = ly + gap * vy
+        emission = 1.0
+        if geometry[17] > 0.0 or geometry[19] > 0.0:
+            wx, wy, emission = _display_optics(geometry, wx, wy, vx, vy)
+        col, row = _pixel(geometry, wx, wy)
         level, dlevel = _level(states[0, 5], area, darea)
-        return bx, by, lx, ly, area, darea, col, row, level, dlevel
+        return bx, by, lx, ly, area, darea, col, row, level, dlevel, emission
     cx = states[s, 0]
     cy = states[s, 1]
     m = states[s, 3]
@@ -249,18 +285,24 @@ def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
     area, darea = _lens(radius[k], m, math.sqrt((ctx - bx) ** 2 + (cty - by) ** 2))
     lx = (bx + ctx) / 2
     ly = (by + cty) / 2
-    col, row = _pixel(geometry, cx + geometry[11] * vx + mu * (lx - fx),
-                      cy + geometry[11] * vy + mu * (ly - fy))
+    wx = cx + geometry[11] * vx + mu * (lx - fx)
+    wy = cy + geometry[11] * vy + mu * (ly - fy)
+    emission = 1.0
+    if geometry[17] > 0.0 or geometry[19] > 0.0:
+        gap = geometry[11] - geometry[9]
+        wx, wy, emission = _display_optics(geometry, wx, wy, (wx - lx) / gap, (wy - ly) / gap)
+    col, row = _pixel(geometry, wx, wy)
     level, dlevel = _level(states[s, 5], area, darea)
-    return bx, by, lx, ly, area, darea, col, row, level, dlevel
+    return bx, by, lx, ly, area, darea, col, row, level, dlevel, emission
 
 
 @_inline
 def _fill(cache, n, radius, geometry, offsets, states, s, vx, vy, i, j, shared):
     pair = _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared)
-    for f in range(_CACHE_FIELDS - 1):
+    for f in range(_LENS_R):
         cache[n, f] = pair[f]
-    cache[n, _CACHE_FIELDS - 1] = math.sqrt(max(pair[4] / math.pi, _EPS))
+    cache[n, _LENS_R] = math.sqrt(max(pair[4] / math.pi, _EPS))
+    cache[n, _EMISSION] = pair[10]
 
 
 @_parallel
@@ -309,7 +351,7 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                                   shared)
                             if cache[n, 4] > 0.0:
                                 _sample(stack, cache[n, 6], cache[n, 7], cache[n, 8], samples,
-                                        slopes, n)
+                                        slopes, n, cache[n, _EMISSION])
                         area = cache[n, 4]
                         if area <= 0.0:
                             continue
@@ -322,7 +364,7 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                                 >= keep * keep:
                             continue
                         po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                        share, _ = _share(pupil_b, cache[n, 10], po)
+                        share, _ = _share(pupil_b, cache[n, _LENS_R], po)
                         w = area * share * norm
                         for c in range(channels):
                             acc[c] += w * samples[n, c]
@@ -375,7 +417,7 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                                       i, j, shared)
                                 if cache[n, 4] > 0.0:
                                     _sample(stack, cache[n, 6], cache[n, 7], cache[n, 8],
-                                            samples, slopes, n)
+                                            samples, slopes, n, cache[n, _EMISSION])
                                     if shared:
                                         touched[count] = n
                                         count += 1
@@ -394,7 +436,7 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                                     + (cache[n, 1] - fy) ** 2 >= keep * keep:
                                 continue
                             po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                            share, slope = _share(pupil_b, cache[n, 10], po)
+                            share, slope = _share(pupil_b, cache[n, _LENS_R], po)
                             if slope == 0.0:
                                 continue
                             w = area * share * norm
@@ -425,6 +467,10 @@ def _settle(grad_radius, grad_stack, want_stack, b, cache, samples, slopes, g_sa
     k = int(i * geometry[0] + j)
     grad_radius[b, k] += g_area[n] * cache[n, 5] + gl * lscale * cache[n, 9]
     if want_stack:
+        emission = cache[n, _EMISSION]
+        if emission != 1.0:  # the sample was the stack's times the emission weight
+            for c in range(samples.shape[1]):
+                g_sample[n, c] *= emission
         _scatter(grad_stack, b, cache[n, 6], cache[n, 7], cache[n, 8], g_sample, n)
     g_area[n] = 0.0
     for c in range(samples.shape[1]):

@@ -17,8 +17,14 @@ the display the size of the hole, displaced with the hole, never its cell's ligh
 
 Neglected (stated in docs/model.md): diffraction (see validation), the lens window's shape beyond
 its area and centre (an equal-area disk stands in for the two-disk lens), the pupil's curvature
-across one hole, light scattered or reflected by the hole walls and plate surfaces, display
-angular emission falloff (Lambertian), the eye's aberrations and Stiles-Crawford effect.
+across one hole, light scattered or reflected by the hole walls and plate surfaces, the eye's
+aberrations and Stiles-Crawford effect.
+
+Display-side optics (`Display`; docs/model.md "Display-side optics"): a cover glass moves each
+pair's window by the refraction shift at the pair's chief ray, and a cos^k emission falloff
+weighs the pair by its chief ray's angle; striped RGB sub-pixels move each channel's pixel box
+by its stripe's offset in the stack's kernels. All off by default, leaving every render as it
+was.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import torch.nn.functional as F
 from aperture_fab.optics import kernels
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.kernels import STATE_FIELDS
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
 __all__ = ["BACKENDS", "Backend", "Renderer", "render_open", "render_open_states"]
 
@@ -98,13 +104,16 @@ def _trapezoid(offset_mm: np.ndarray, pixel_mm: float, box_mm: float) -> np.ndar
 
 
 def _window_kernels(
-    pixel_mm: tuple[float, float], box_mm: tuple[float, float], radii_mm: np.ndarray
+    pixel_mm: tuple[float, float], box_mm: tuple[float, float], radii_mm: np.ndarray,
+    shift_mm: float = 0.0,
 ) -> np.ndarray:
     """Weights (L, 2k+1, 2k+1) of display pixels around a sample point at a pixel centre.
 
     Level l is the mean over a disk of radius radii_mm[l], smeared by the view pixel's box, of a
-    display that is constant over each pixel. Rows run toward -y like images; the kernels are
-    symmetric so the sign does not matter.
+    display that is constant over each pixel, each pixel's emitting area moved by shift_mm along
+    +x (a sub-pixel stripe's offset; |shift_mm| <= a third of a pixel, which the kernel's one
+    pixel of slack covers). Rows run toward -y like images; the kernels are symmetric (for
+    shift_mm = 0) so the sign does not matter.
     """
     wx, wy = pixel_mm
     reach = float(radii_mm.max()) + max(box_mm) / 2
@@ -118,7 +127,10 @@ def _window_kernels(
     kernels = []
     for radius in radii_mm:
         points = unit * radius if radius > 0 else np.zeros((2, 1))
-        tx = _trapezoid(off[:, None] * wx - points[0][None, :], wx, box_mm[0])  # (2k+1, P)
+        # Column offset of the sample point from each pixel's emitting centre (the disk's
+        # quadrature is symmetric, so -points is the same set of points).
+        tx = _trapezoid(off[:, None] * wx - points[0][None, :] - shift_mm, wx,
+                        box_mm[0])  # (2k+1, P)
         ty = _trapezoid(off[:, None] * wy - points[1][None, :], wy, box_mm[1])
         kernel = ty @ tx.T / points.shape[1]  # (rows, cols)
         kernels.append(kernel / kernel.sum())
@@ -138,6 +150,8 @@ class _Pairs:
     lens_offset_mm: torch.Tensor  # (N, S) centre distance of the lens's two disks
     pupil_offset_mm: torch.Tensor  # (N, S) lens centre to the pupil footprint's centre
     grid_xy: torch.Tensor  # (N, S, 2) normalized display sample point of the lens centre
+    #: (N, S) the display's emission falloff cos^k at the pair's chief ray; None: Lambertian.
+    emission: torch.Tensor | None = None
 
 
 class _PairWeights(torch.autograd.Function):
@@ -281,15 +295,28 @@ class Renderer:
         levels = min(MAX_LEVELS, max(2, levels))
         radii = self.window_max_mm * np.sqrt(np.linspace(0, 1, levels))
         step = eye.view_step
-        # The view pixel's box on the display, at the nominal focus (see docs/model.md).
-        box = (opt.window_rate * step[0], opt.window_rate * step[1])
+        # The view pixel's box on the display, at the nominal focus (see docs/model.md); cover
+        # glass slows the window's motion by its paraxial apparent-depth loss t_g (1 - 1/n).
+        rate = opt.window_rate
+        if display.cover_glass_mm > 0:
+            rate = max(rate - display.cover_glass_mm * (1 - 1 / display.cover_glass_index), 0.0)
+        box = (rate * step[0], rate * step[1])
         kernels = _window_kernels(pixel_mm, box, radii)
+        # Striped RGB: each channel's kernels with its stripe's offset (built for a 3-channel
+        # display only; a grey display's one channel fills the pixel).
+        self._subpixel_spectrum: torch.Tensor | None = None
+        offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
         self.kernel_size = kernels.shape[-1]
         self.pad = self.kernel_size // 2 + 1
         ny, nx = display.pixels[1] + 2 * self.pad, display.pixels[0] + 2 * self.pad
         self._fft_shape = (ny + self.kernel_size - 1, nx + self.kernel_size - 1)
         k = torch.as_tensor(kernels, dtype=dtype, device=self.device)
         self._kernel_spectrum = torch.fft.rfft2(k, s=self._fft_shape)
+        if offsets_px is not None:
+            per_channel = np.stack([_window_kernels(pixel_mm, box, radii, o * pixel_mm[0])
+                                    for o in offsets_px])
+            self._subpixel_spectrum = torch.fft.rfft2(
+                torch.as_tensor(per_channel, dtype=dtype, device=self.device), s=self._fft_shape)
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], _Pairs] = {}
 
@@ -353,10 +380,14 @@ class Renderer:
     # -- display ------------------------------------------------------------------------------
 
     def display_stack(self, display: torch.Tensor) -> torch.Tensor:
-        """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W')."""
+        """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W'). A striped
+        RGB display (`Display.subpixels`) filters each channel with its stripe's offset."""
         d = F.pad(display.to(self.device, self.dtype), (self.pad,) * 4)
         spectrum = torch.fft.rfft2(d, s=self._fft_shape)  # (C, ., .)
-        full = torch.fft.irfft2(spectrum[:, None] * self._kernel_spectrum[None], s=self._fft_shape)
+        kernel = self._kernel_spectrum[None]
+        if self.scene.display.subpixel_offsets_px(d.shape[0]) is not None:
+            kernel = cast(torch.Tensor, self._subpixel_spectrum)
+        full = torch.fft.irfft2(spectrum[:, None] * kernel, s=self._fft_shape)
         c = self.kernel_size // 2
         return full[:, :, c : c + d.shape[-2], c : c + d.shape[-1]].unsqueeze(0)
 
@@ -419,6 +450,8 @@ class Renderer:
             grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
             samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
                                     align_corners=True)[0, :, 0]  # (C, n, S)
+            if pairs.emission is not None:
+                weight = weight * pairs.emission[sl]
             out.append((samples * weight).sum(-1))
         return torch.cat(out, dim=1)
 
@@ -439,6 +472,8 @@ class Renderer:
         if self.hole_offset_mm is not None:
             offsets = torch.as_tensor(self.hole_offset_mm.reshape(-1, 2), dtype=dt,
                                       device=self.device)
+        display = scene.display
+        display_optics = display.cover_glass_mm > 0 or display.emission_power > 0
         reach = keep_within + self._search_extra_mm
         # The window may reach past the plate's edge (masked below); never clamp its size to
         # the plate, which would shift it off the holes on narrow plates.
@@ -479,21 +514,50 @@ class Renderer:
             pupil_off = ((lx - fx) ** 2 + (ly - fy) ** 2).sqrt()
             wx = cx + s_d * v[:, :1] + mu * (lx - fx)
             wy = cy + s_d * v[:, 1:] + mu * (ly - fy)
+            emission = None
+            if display_optics:
+                wx, wy, emission = self._display_optics(wx, wy, lx, ly)
             gx, gy = self._normalize(wx, wy)
             hole = torch.where(keep, rows.clamp(0, ncy - 1) * ncx + cols.clamp(0, ncx - 1),
                                ncx * ncy)
             # Pack the kept pairs to the front of each row.
             order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
             fields = [hole, dist, pupil_off, gx, gy]
+            if emission is not None:
+                fields.append(emission)
             parts.append([f.gather(1, order) for f in fields] + [keep.sum(1)])
         width = max(1, int(max(int(p[-1].max()) for p in parts)))
-        cat = [torch.cat([p[i][:, :width] for p in parts]) for i in range(5)]
+        cat = [torch.cat([p[i][:, :width] for p in parts]) for i in range(len(parts[0]) - 1)]
         return _Pairs(
             hole=cat[0],
             lens_offset_mm=cat[1].to(self.dtype),
             pupil_offset_mm=cat[2].to(self.dtype),
             grid_xy=torch.stack([cat[3], cat[4]], -1).to(self.dtype),
+            emission=cat[5].to(self.dtype) if len(cat) > 5 else None,
         )
+
+    def _display_optics(self, wx: torch.Tensor, wy: torch.Tensor, lx: torch.Tensor,
+                        ly: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
+                                                   torch.Tensor | None]:
+        """A pair's window centre (wx, wy) on the emitting surface moved by the cover glass,
+        and its emission falloff (None: Lambertian), both at the pair's chief ray: the ray
+        through the lens centre (lx, ly) on the bottom face toward the window centre in air,
+        slope w = (window - lens) / gap (v at infinite focus). See docs/model.md."""
+        display = self.scene.display
+        gap = self.scene.plate.gap_mm
+        sx, sy = (wx - lx) / gap, (wy - ly) / gap
+        tan2 = sx * sx + sy * sy
+        t_g, n = display.cover_glass_mm, display.cover_glass_index
+        if t_g > 0:
+            # Straight on in air to z = 0, less the glass's shortfall: in the glass the slope is
+            # w tan(theta_g) / tan(theta) = w / sqrt(n^2 + (n^2 - 1) |w|^2) (Snell).
+            loss = t_g * (1 - (n * n + (n * n - 1) * tan2).rsqrt())
+            wx, wy = wx - loss * sx, wy - loss * sy
+        emission = None
+        k = display.emission_power
+        if k > 0:
+            emission = (1 + tan2).pow(-k / 2)  # cos(theta)^k, theta the angle in air
+        return wx, wy, emission
 
     def _normalize(self, x_mm: torch.Tensor, y_mm: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -517,6 +581,7 @@ class Renderer:
             self._axis_length, scene.plate_distance_mm, eye.eye_relief_mm,
             scene.display_distance_mm, display.width_mm / 2, display.height_mm / 2,
             display.pixel_mm[0], display.pixel_mm[1], self.pad,
+            display.cover_glass_mm, display.cover_glass_index, display.emission_power,
         ], dtype=np.float64)
 
 
@@ -601,6 +666,9 @@ def render_open(
     dev, dtype = display.device, display.dtype
     cx, cy = eye.positions_mm[position] if offset_mm is None else offset_mm
     pupil = eye.pupil_mm if pupil_mm is None else pupil_mm
+    if disp.has_optics:
+        return _render_open_optics(scene, display, opt, (cx, cy), pupil, pupil_samples,
+                                   subpixels)
     spread = pupil / 2 * abs(opt.beta_display)
     n = pupil_samples if spread > 1e-3 * min(disp.pixel_mm) else 1
     k = torch.arange(n, dtype=dtype, device=dev) + 0.5
@@ -623,4 +691,51 @@ def render_open(
         out = F.grid_sample(display.unsqueeze(0), grid, mode="bilinear", padding_mode="zeros",
                             align_corners=False)  # (1, C, 1, s * nx * s * n)
         rows.append(out.reshape(display.shape[0], subpixels, len(vx), subpixels * n).mean((1, 3)))
+    return torch.stack(rows, 1)
+
+
+def _render_open_optics(scene: Scene, display: torch.Tensor, opt: _Optics,
+                        centre_mm: tuple[float, float], pupil_mm: float, pupil_samples: int,
+                        subpixels: int) -> torch.Tensor:
+    """`render_open` with display-side optics, per ray: each ray (view sample s, pupil point
+    u) has slope w = s - q u in air, lands on the emitting surface short of its straight
+    continuation by the cover glass's shortfall t_g w (1 - 1 / sqrt(n^2 + (n^2 - 1) |w|^2)),
+    carries cos^k of its angle in air, and reads each channel at its sub-pixel stripe's
+    offset."""
+    eye, disp = scene.eye, scene.display
+    dev, dtype = display.device, display.dtype
+    q = (1 - opt.beta_display) / opt.s_display
+    n = pupil_samples
+    k = torch.arange(n, dtype=dtype, device=dev) + 0.5
+    golden = math.pi * (3 - math.sqrt(5))
+    radius = torch.sqrt(k / n) * (pupil_mm / 2)
+    ux, uy = radius * torch.cos(golden * k), radius * torch.sin(golden * k)  # (n,) pupil points
+    sub = (torch.arange(subpixels, dtype=dtype, device=dev) + 0.5) / subpixels - 0.5
+    vx, vy = (torch.as_tensor(v, dtype=dtype, device=dev) for v in eye.view_directions())
+    step = eye.view_step
+    sx = (vx[:, None] + sub[None, :] * step[0]).reshape(-1)[None, :, None]  # (1, nx s, 1)
+    t_g, index, power = disp.cover_glass_mm, disp.cover_glass_index, disp.emission_power
+    shifts = disp.subpixel_offsets_px(display.shape[0])
+    channels = [0.0] * display.shape[0] if shifts is None else list(shifts)
+    to_gx = 2 / disp.width_mm
+    to_gy = -2 / disp.height_mm
+    rows = []
+    for y in vy:
+        sy = (y - sub * step[1])[:, None, None]  # (s, 1, 1)
+        wx, wy = sx - q * ux, sy - q * uy  # (., ., n) slopes in air
+        tan2 = wx * wx + wy * wy
+        loss = t_g * (1 - (index * index + (index * index - 1) * tan2).rsqrt())
+        lx = centre_mm[0] + opt.s_display * sx + opt.beta_display * ux - loss * wx
+        ly = centre_mm[1] + opt.s_display * sy + opt.beta_display * uy - loss * wy
+        lx, ly = torch.broadcast_tensors(lx, ly)
+        weight = (1 + tan2).pow(-power / 2) if power > 0 else torch.ones_like(tan2)
+        out = []
+        for c, shift_px in enumerate(channels):
+            gx = (lx - shift_px * disp.pixel_mm[0]) * to_gx
+            grid = torch.stack([gx, ly * to_gy], -1).reshape(1, 1, -1, 2)
+            value = F.grid_sample(display[c][None, None], grid, mode="bilinear",
+                                  padding_mode="zeros", align_corners=False)
+            out.append((value.reshape(lx.shape) * weight).mean((0, 2)).reshape(len(vx), -1)
+                       .mean(1))
+        rows.append(torch.stack(out))
     return torch.stack(rows, 1)

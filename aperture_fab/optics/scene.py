@@ -21,7 +21,11 @@ from aperture_fab.optics.eyes import ROTATION_MM, EyeboxShape, check_fields
 __all__ = [
     "HoleAxis",
     "Display",
+    "EMISSIONS",
+    "Emission",
     "Plate",
+    "SUBPIXEL_LAYOUTS",
+    "Subpixels",
     "Eye",
     "Scene",
     "display_fov_deg",
@@ -29,6 +33,23 @@ __all__ = [
 
 HoleAxis = Literal["straight", "chief_ray"]
 HOLE_AXES: tuple[HoleAxis, ...] = ("straight", "chief_ray")
+#: RGB sub-pixel layouts: "none" (every channel fills the pixel), or vertical stripes a third
+#: of the pixel wide in this order from left (-x) to right (+x).
+Subpixels = Literal["none", "rgb_stripe", "bgr_stripe"]
+SUBPIXEL_LAYOUTS: tuple[Subpixels, ...] = ("none", "rgb_stripe", "bgr_stripe")
+#: Angular emission: "lambertian" (radiance independent of angle) or "cosine_power" (radiance
+#: proportional to cos(theta)^emission_exponent, theta the emission angle in air).
+Emission = Literal["lambertian", "cosine_power"]
+EMISSIONS: tuple[Emission, ...] = ("lambertian", "cosine_power")
+#: Cover glass limits: thicker than this is not a display's cover; indices of optical glasses
+#: and plastics lie between these.
+MAX_COVER_GLASS_MM = 10.0
+COVER_GLASS_INDEX_RANGE = (1.0, 2.5)
+DEFAULT_COVER_GLASS_INDEX = 1.5
+#: Largest cos^k exponent: beyond it a panel emits in a pencil no eye position could use.
+MAX_EMISSION_EXPONENT = 100.0
+#: Channels of a striped RGB display.
+SUBPIXEL_CHANNELS = 3
 
 #: Largest sensible sizes: beyond these a value is almost surely a unit mistake (metres, microns).
 MAX_SIZE_MM = 2000.0
@@ -45,6 +66,14 @@ def check_positive(name: str, value: float, fix: str, upper: float = math.inf) -
         raise ValueError(f"{name} = {value!r} is out of range; allowed: {allowed}. {fix}")
 
 
+def _check_range(name: str, value: float, lo: float, hi: float, fix: str) -> None:
+    """Raise ValueError naming the field unless lo <= value <= hi and finite."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise ValueError(f"{name} = {value!r} is out of range; allowed: {lo:g} to {hi:g}. {fix}")
+
+
 def check_pair(name: str, value: tuple, kind: type) -> None:
     if not (isinstance(value, tuple) and len(value) == 2):
         raise TypeError(f"{name} must be a pair (x, y), got {value!r}")
@@ -55,15 +84,31 @@ def check_pair(name: str, value: tuple, kind: type) -> None:
 
 @dataclass(frozen=True)
 class Display:
-    """A pixel display at z = 0, centred on the axis, emitting each pixel's value (Lambertian).
+    """A pixel display whose emitting surface is at z = 0, centred on the axis, emitting each
+    pixel's value; see docs/model.md "Display-side optics".
 
     width_mm, height_mm: size of the active area (x, y).
     pixels: (nx, ny) pixel count; a pixel is a uniformly lit rectangle.
+    cover_glass_mm: thickness of the cover glass over the emitting surface, occupying
+        0 <= z <= cover_glass_mm inside the plate's gap (the gap stays measured from the
+        emitting surface); 0: none.
+    cover_glass_index: its refractive index (one for all channels: no dispersion).
+    subpixels: "none" (each channel fills the pixel) or "rgb_stripe" / "bgr_stripe" (channel c
+        emits from a vertical stripe a third of the pixel wide, offset (c - 1) / 3 pixel in x for
+        R, G, B left to right, reversed for bgr); one-channel (grey) displays ignore it.
+    emission: "lambertian" (radiance independent of angle) or "cosine_power" (radiance
+        proportional to cos(theta)^emission_exponent, theta the emission angle in air).
+    emission_exponent: k of "cosine_power" (unused by "lambertian").
     """
 
     width_mm: float
     height_mm: float
     pixels: tuple[int, int]
+    cover_glass_mm: float = 0.0
+    cover_glass_index: float = DEFAULT_COVER_GLASS_INDEX
+    subpixels: Subpixels = "none"
+    emission: Emission = "lambertian"
+    emission_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         fix = "Give the display's active area in millimetres."
@@ -76,6 +121,52 @@ class Display:
                     f"display.pixels = {self.pixels} is out of range; allowed: 1 to {MAX_PIXELS} "
                     "per axis. Give the pixel count of the area used, e.g. [400, 400]."
                 )
+        _check_range("display.cover_glass_mm", self.cover_glass_mm, 0.0, MAX_COVER_GLASS_MM,
+                     "Give the cover glass's thickness in mm (a phone panel's is about 0.5), "
+                     "or 0 for none.")
+        lo, hi = COVER_GLASS_INDEX_RANGE
+        _check_range("display.cover_glass_index", self.cover_glass_index, lo, hi,
+                     "Give the glass's refractive index, e.g. 1.5 (about 1.52 for soda-lime "
+                     "glass, 1.49 for PMMA).")
+        if self.subpixels not in SUBPIXEL_LAYOUTS:
+            raise ValueError(
+                f"display.subpixels = {self.subpixels!r} is not allowed; choose one of "
+                f"{', '.join(SUBPIXEL_LAYOUTS)}."
+            )
+        if self.emission not in EMISSIONS:
+            raise ValueError(
+                f"display.emission = {self.emission!r} is not allowed; choose one of "
+                f"{', '.join(EMISSIONS)}."
+            )
+        _check_range("display.emission_exponent", self.emission_exponent, 0.0,
+                     MAX_EMISSION_EXPONENT, "Give k of radiance ~ cos(theta)^k, e.g. 1 to 4 for "
+                     "a panel that dims off axis.")
+
+    @property
+    def emission_power(self) -> float:
+        """The exponent k of radiance ~ cos(theta)^k; 0 for a Lambertian display."""
+        return self.emission_exponent if self.emission == "cosine_power" else 0.0
+
+    @property
+    def has_optics(self) -> bool:
+        """Whether any display-side optics is on (cover glass, sub-pixels or falloff)."""
+        return (self.cover_glass_mm > 0 or self.subpixels != "none"
+                or self.emission_power > 0)
+
+    def subpixel_offsets_px(self, channels: int) -> tuple[float, ...] | None:
+        """Each channel's emitting-stripe centre, in pixels along +x from the pixel centre, for
+        a display of `channels` channels; None when every channel fills the pixel (layout
+        "none", or a grey display: its one channel drives all three stripes alike)."""
+        if self.subpixels == "none" or channels == 1:
+            return None
+        if channels != SUBPIXEL_CHANNELS:
+            raise ValueError(
+                f"display.subpixels = {self.subpixels!r} needs an RGB display of "
+                f"{SUBPIXEL_CHANNELS} channels, got {channels}; use subpixels = \"none\" or an "
+                "RGB (or one-channel grey) image."
+            )
+        order = (-1.0, 0.0, 1.0) if self.subpixels == "rgb_stripe" else (1.0, 0.0, -1.0)
+        return tuple(o / SUBPIXEL_CHANNELS for o in order)
 
     @property
     def pixel_mm(self) -> tuple[float, float]:
@@ -298,6 +389,15 @@ class Scene:
     eye: Eye
 
     def __post_init__(self) -> None:
+        glass = self.display.cover_glass_mm
+        if glass >= self.plate.gap_mm:
+            raise ValueError(
+                f"display.cover_glass_mm = {glass:g} is not less than plate.gap_mm = "
+                f"{self.plate.gap_mm:g}: the glass lies inside the gap, which is measured from "
+                "the display's emitting surface to the plate's bottom face; allowed: "
+                f"0 <= cover_glass_mm < {self.plate.gap_mm:g}. Give a thinner glass or a "
+                "larger gap (gap = glass + air between the glass and the plate)."
+            )
         focus = self.eye.focus_mm
         if focus is not None and focus <= self.plate_distance_mm * 1.05:
             raise ValueError(

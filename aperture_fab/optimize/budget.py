@@ -15,7 +15,8 @@ FH x FW; see `stack_shape`):
 
 - both paths: the display stack (irfft output C x L x FH x FW, of which the stack is a slice),
   its FFT buffers (the product spectrum C x L x FH x (FW/2+1) complex, the kernel spectrum
-  L x FH x (FW/2+1) complex, kept by the renderer) and their adjoints in the backward (about
+  L x FH x (FW/2+1) complex, kept by the renderer, and 3 more for a striped RGB display's
+  per-channel kernels) and their adjoints in the backward (about
   three stack-sized buffers); per cell PER_CELL_FIXED working-dtype values (logits, their
   gradient and Adam moments, the radius chain and its graph) and, on the kernel path,
   PER_CELL_PER_TARGET_BYTES per target (the kernel's float64 radius and (K, 2) offset copies);
@@ -26,12 +27,13 @@ FH x FW; see `stack_shape`):
   view-sized buffers while the loss's backward runs), then the float64 copy of the views'
   gradient and the per-thread grad-stack buffers (B x the channels-last stack, B = min(view
   rows, threads, model.MAX_GRAD_BLOCKS_BYTES / stack bytes)) with their sum, and B x K float64
-  radius grads; each thread's pair cache (box^2 x ~(100 + 24 C) bytes). A tracked design
-  (optimizer.tracking) renders each state through its own solved display: one more stack per
-  state and target.
+  radius grads; each thread's pair cache (box^2 x ~(PAIR_CACHE_BYTES + 24 C) bytes). A
+  tracked design (optimizer.tracking) renders each state through its own solved display: one
+  more stack per state and target.
 - torch path (CUDA, and the reference on the CPU): per eye state a pair table of N x W pairs
   (W: holes within the pupil's footprint of one view pixel, padded to the most of any view
-  pixel), each 8 + 4 isz bytes (hole index, two offsets, display point), plus what autograd
+  pixel), each 8 + 4 isz bytes (hole index, two offsets, display point; + isz with emission
+  falloff, its weight), plus what autograd
   saves per pair ((6 + C) isz: the weight's two derivatives, the sample point, the weight and
   the C samples); tables of the last model.TABLE_CACHE states are kept between iterations when
   the states are drawn afresh; the build's candidates (N x nsx x nsy x 40 bytes, float64 before
@@ -62,7 +64,7 @@ from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.optics import kernels, model
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import distribution_of
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
 __all__ = [
     "DEFAULT_SHARE",
@@ -97,6 +99,9 @@ LOSS_GRADIENTS = 4
 BUILD_CANDIDATE_BYTES = 40
 #: Torch path: working-dtype values per pair in flight in a chunk (the weights' intermediates).
 CHUNK_VALUES = 30
+#: Kernel path: bytes per pair-cache slot besides the samples (kernels._CACHE_FIELDS float64
+#: values, the seen flag, the area gradient, the touched index).
+PAIR_CACHE_BYTES = 8 * kernels._CACHE_FIELDS + 17
 
 Backend = Literal["kernel", "torch"]
 
@@ -144,7 +149,10 @@ def stack_shape(scene: Scene) -> StackShape:
     levels = min(model.MAX_LEVELS,
                  max(2, math.ceil(window_max / (model.LEVEL_SPACING_PX * pixel)) + 1))
     step = eye.view_step
-    box = max(optics.window_rate * step[0], optics.window_rate * step[1])
+    rate = optics.window_rate
+    if display.cover_glass_mm > 0:  # as the Renderer: the glass's apparent-depth loss
+        rate = max(rate - display.cover_glass_mm * (1 - 1 / display.cover_glass_index), 0.0)
+    box = max(rate * step[0], rate * step[1])
     k = math.ceil((window_max + box / 2) / pixel + 1)
     size = 2 * k + 1
     pad = size // 2 + 1
@@ -211,6 +219,8 @@ def estimate(
     stack = c * shape.levels * shape.height * shape.width * isz
     spectrum = c * shape.fft_height * half * 2 * isz
     kernel_spectrum = shape.levels * shape.fft_height * half * 2 * isz
+    if display.subpixels != "none":  # and one per stripe (the renderer keeps both)
+        kernel_spectrum *= 1 + SUBPIXEL_CHANNELS
     display_params = t * c * display.pixels[0] * display.pixels[1] * isz * 6
     views = s * c * n
     threads = kernels.thread_count() if threads is None else threads
@@ -230,7 +240,7 @@ def estimate(
                   + 2 * distribution.rotation_mm * math.sin(math.radians(distribution.gaze_deg))
                   + plate.thickness_mm * math.hypot(*eye.view_tan_half))
         box = math.ceil(spread / min(plate.pitch_mm)) + 3
-        alive["pair caches"] = threads * box * box * (100 + 24 * c)
+        alive["pair caches"] = threads * box * box * (PAIR_CACHE_BYTES + 24 * c)
         forward = {
             "FFT buffers": 2 * full + spectrum if display_optimized else full + product,
             "views": full + views * (8 + (isz if isz != 8 else 0)),
@@ -251,7 +261,8 @@ def estimate(
         candidates = n * (math.floor(2 * (keep + extra) / px) + 2) * (
             math.floor(2 * (keep + extra) / py) + 2)
         tables = s + (min(model.TABLE_CACHE, s) if fresh_states else 0)
-        alive["pair tables"] = tables * pairs * (8 + 4 * isz)
+        per_pair = 8 + (5 if display.emission_power > 0 else 4) * isz  # + falloff weight
+        alive["pair tables"] = tables * pairs * per_pair
         alive["autograd"] = t * s * pairs * (6 + c) * isz
         alive["display stack"] = t * full  # grid_sample keeps the stack (a view of it)
         if tracked:

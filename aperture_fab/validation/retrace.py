@@ -17,7 +17,11 @@ A ray counts as blocked if it meets the mesh anywhere between the pupil and the 
 crosses the plane of the plate's bottom face outside the plate's outline (the convex hull of the
 mesh's xy footprint): there the mount that holds the plate over the display stops it. Otherwise
 it carries the radiance of the display pixel it lands on (pixels uniformly lit, row 0 at +y,
-black outside the display).
+black outside the display). Display-side optics (docs/model.md) act on each ray exactly: under a
+cover glass (0 <= z <= cover_glass_mm, below the plate) the ray refracts at the glass's top face
+and lands short of its straight continuation; a striped RGB display lights each channel only on
+its stripe (a third of the pixel, at 3 times the value); falloff weighs the radiance by cos^k of
+the ray's angle in air.
 
 A view pixel's value is the mean over its box of view directions B and the pupil disk P (radius
 R, uniform weights): V = (1 / |B|) int_B dv (1 / (pi R^2)) int_P du f(v, u), f = pass x radiance.
@@ -76,7 +80,7 @@ import numpy as np
 
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.mesh_holes import HoleLoops, mesh_hole_loops
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.scene import Display, Scene
 
 __all__ = ["DEFAULT_SAMPLES", "REPLICATES", "SAMPLINGS", "Sampling", "TracedView",
            "trace_mesh_view"]
@@ -275,6 +279,32 @@ class _Rays:
     blocked: Occluder
 
 
+def _refracted_landing(display: Display, x_mm: np.ndarray, y_mm: np.ndarray,
+                       slope_x: np.ndarray, slope_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays of slopes (x, y) in air, whose straight continuation meets z = 0 at (x, y),
+    meet the emitting surface under the cover glass: in the glass (Snell) the slope is
+    w / sqrt(n^2 + (n^2 - 1) |w|^2), so each lands t_g w (1 - that factor) short."""
+    n2 = display.cover_glass_index**2
+    factor = 1 / np.sqrt(n2 + (n2 - 1) * (slope_x**2 + slope_y**2))
+    short = display.cover_glass_mm * (1 - factor)
+    return x_mm - short * slope_x, y_mm - short * slope_y
+
+
+def _display_optics(display: Display, radiance: np.ndarray, within_px: np.ndarray,
+                    slope_x: np.ndarray, slope_y: np.ndarray) -> np.ndarray:
+    """Radiance (C, N) of the pixels the rays land on, as the display's sub-pixel stripes and
+    emission falloff make it, per ray: a striped channel is lit, at 3 times its value, only on
+    its stripe (within_px: where in its pixel the ray lands, 0 to 1 along +x); falloff
+    multiplies by cos^k of the ray's angle in air."""
+    offsets = display.subpixel_offsets_px(radiance.shape[0])
+    if offsets is not None:
+        stripes = np.stack([np.abs(within_px - 0.5 - o) < 0.5 / len(offsets) for o in offsets])
+        radiance = radiance * len(offsets) * stripes
+    if display.emission_power > 0:
+        radiance = radiance * (1 + slope_x**2 + slope_y**2) ** (-display.emission_power / 2)
+    return radiance
+
+
 def _shade(rays: _Rays, v_x: np.ndarray, v_y: np.ndarray, u_x: np.ndarray, u_y: np.ndarray,
            live: np.ndarray) -> tuple[np.ndarray, int]:
     """Radiance x pass (C, N) of the rays (v, u), flat (N,) arrays, of which only `live` ones
@@ -288,7 +318,10 @@ def _shade(rays: _Rays, v_x: np.ndarray, v_y: np.ndarray, u_x: np.ndarray, u_y: 
     # Where each ray lands on the display, and the radiance there.
     land_x = cx + s_display * vx + (1 - s_display * q) * ux
     land_y = cy + s_display * vy + (1 - s_display * q) * uy
-    col = np.floor((land_x + disp.width_mm / 2) / disp.pixel_mm[0]).astype(np.int64)
+    if disp.cover_glass_mm > 0:
+        land_x, land_y = _refracted_landing(disp, land_x, land_y, vx - q * ux, vy - q * uy)
+    col_mm = (land_x + disp.width_mm / 2) / disp.pixel_mm[0]
+    col = np.floor(col_mm).astype(np.int64)
     row = np.floor((disp.height_mm / 2 - land_y) / disp.pixel_mm[1]).astype(np.int64)
     keep = (col >= 0) & (col < disp.pixels[0]) & (row >= 0) & (row < disp.pixels[1])
     # The mount: rays crossing the bottom face's plane outside the outline are blocked.
@@ -297,6 +330,9 @@ def _shade(rays: _Rays, v_x: np.ndarray, v_y: np.ndarray, u_x: np.ndarray, u_y: 
     bottom_y = cy + s_bottom * vy + (1 - s_bottom * q) * uy
     keep &= _inside(rays.hull, bottom_x, bottom_y, rays.hull_tol)
     radiance = rays.display[:, row[keep], col[keep]]
+    if disp.has_optics:
+        radiance = _display_optics(disp, radiance, col_mm[keep] - col[keep],
+                                   vx[keep] - q * ux[keep], vy[keep] - q * uy[keep])
     lit = np.any(radiance != 0, axis=0)
     cast = np.flatnonzero(keep)[lit]  # only rays that could carry light are cast
     # Origins on the pupil plane, directions d x / d s = v - q u, toward -z.
