@@ -426,3 +426,18 @@ def test_mesh_retrace_applies_display_optics_per_ray(optics, samples, min_psnr_d
     assert with_optics >= min_psnr_db
     if "cover_glass_mm" in optics:
         assert psnr_retrace(traced.view, model_view(base, a, display)) < with_optics - 3.0
+
+
+def test_elemental_images_follow_the_glass():
+    """The regular pinholes' display content under glass: each display pixel shows the target
+    at the direction from which the eye really sees it (the refracted ray through its hole)."""
+    from aperture_fab.optics.baselines import _through_glass
+
+    display = Display(20.0, 20.0, (400, 400), cover_glass_mm=GLASS_MM,
+                      cover_glass_index=GLASS_INDEX)
+    tan = math.tan(math.radians(ANGLE_DEG))
+    h = 10.0
+    land, _ = refracted_landing(h * tan, 0.0, tan, 0.0, GLASS_MM, GLASS_INDEX)
+    dx = np.array([land])  # the dot a ray at 26 deg through a hole at 0 lands on
+    vx, vy = _through_glass(display, dx, np.zeros(1), h, dx / h, np.zeros(1))
+    assert float(vx[0]) == pytest.approx(tan, abs=1e-7) and float(vy[0]) == 0.0

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.scene import Display, Scene
 
 __all__ = ["DESIGN_WAVELENGTH_MM", "PinholeArray", "regular_pinholes", "elemental_display"]
 
@@ -78,8 +78,27 @@ def elemental_display(scene: Scene, array: PinholeArray, target_view: torch.Tens
     hole_x, hole_y = ox + kx * step_x, oy + ky * step_y
     tx, ty = eye.view_tan_half
     vx, vy = (x - hole_x) / h, (y - hole_y) / h
+    if display.cover_glass_mm > 0:
+        vx, vy = _through_glass(display, x - hole_x, y - hole_y, h, vx, vy)
     grid = np.stack([vx / tx, -vy / ty], -1)[None]  # normalized view coordinates
     g = torch.as_tensor(grid, dtype=target_view.dtype, device=target_view.device)
     out = F.grid_sample(target_view[None], g, mode="bilinear", padding_mode="zeros",
                         align_corners=False)
     return out[0]
+
+
+#: Fixed-point steps that invert the cover glass's shift (each gains about a factor
+#: t_g / h of 1/20 or less: far below a view pixel after three).
+GLASS_ITERATIONS = 4
+
+
+def _through_glass(display: Display, dx_mm: np.ndarray, dy_mm: np.ndarray, h_mm: float,
+                   vx: np.ndarray, vy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The view directions (tan) from which display points (dx, dy) mm from their pinhole are
+    seen under the cover glass: dx = h v - t_g v (1 - 1 / sqrt(n^2 + (n^2 - 1) |v|^2)) (the
+    refraction shift of docs/model.md), solved by fixed-point steps from the straight v."""
+    n2 = display.cover_glass_index**2
+    for _ in range(GLASS_ITERATIONS):
+        short = display.cover_glass_mm * (1 - 1 / np.sqrt(n2 + (n2 - 1) * (vx**2 + vy**2)))
+        vx, vy = (dx_mm + short * vx) / h_mm, (dy_mm + short * vy) / h_mm
+    return vx, vy
