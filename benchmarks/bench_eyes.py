@@ -15,9 +15,9 @@ ellipse, pupils 3 to 6 mm, focus at infinity), PSNR after gain:
   target shown), the best regular pinhole array (elemental images for the nominal eye) and the
   nominal-point design (designed over the same field of view), judged the same way;
 - tracked: the display solved per state from the part's
-(aperture_fab.optimize.tracking.solve_display,
-  MLEM, --tracked-iterations per state) on the first --tracked-states states of the set, for
-  the default part and for the regular pinhole array.
+  (aperture_fab.optimize.tracking.solve_display, MLEM, --tracked-iterations per state) on the
+  first --tracked-states states of the set, for the default part and for the regular pinhole
+  array.
 
 Goals (issue 8): untracked 10th percentile >= 6 dB above the better of the open display and
 the pinholes; tracked 10th percentile >= 30 dB. Each design's seconds are the `design` call

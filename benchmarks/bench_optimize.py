@@ -26,8 +26,7 @@ alike and the ratios between cases stay fair):
 - large (--large only, meant for a GPU): the nominal eye with 512 x 512 cells at 0.05 mm on a
   25.6 mm, 1024 x 1024 pixel display, 512 x 512 view: seconds per iteration (3 after 1
   warm-up). A case whose estimated memory (`aperture_fab.optimize.budget`) is over the budget is
-  refused
-  before any work and reported as such (the refusal message in the table).
+  refused before any work and reported as such (the refusal message in the table).
 
 Every timed run is one `optimize` call with a checkpoint callback after every iteration that
 stamps the time; the cost of making a checkpoint (estimated by copying the last one) is taken
@@ -35,11 +34,10 @@ out. Per iteration, the loss's forward and backward are timed separately: `optim
 `_design_loss` is wrapped (in the child only) to stamp the forward, and identity autograd nodes
 on its output and on its plate and display inputs stamp the start and the end of the backward;
 the renderer kernels (`aperture_fab.optics.kernels.view_forward` / `view_backward`) are timed on
-their
-own too. The rest of an iteration (Adam step, drawing eye states) is the remainder. The backend
-of a case is forced by handing `optimize` a Renderer with that backend (patched in the child).
-s/iter: the median over the repeats of the iterations after the warm-up ones (the first builds
-the pair table on the torch path).
+their own too. The rest of an iteration (Adam step, drawing eye states) is the remainder. The
+backend of a case is forced by handing `optimize` a Renderer with that backend (patched in the
+child). s/iter: the median over the repeats of the iterations after the warm-up ones (the first
+builds the pair table on the torch path).
 
 Bytes read per iteration (kernel path), the model: the kernel reads a stack sample for P
 (view pixel, hole) pairs per pass (counted in numpy by a mirror of the kernels' hole walk and

@@ -1,6 +1,6 @@
-"""Holes read back from a plate mesh (aperture_fab.fabrication.mesh_holes) against the layout it
-was built
-from. Parts are built with make_part and, where said, written as STL and read back (float32)."""
+"""Holes read back from a plate mesh (aperture_fab.fabrication.mesh_holes) against the layout it was
+built from. Parts are built with make_part and, where said, written as STL and read back
+(float32)."""
 
 from __future__ import annotations
 

@@ -15,8 +15,8 @@ import pytest
 import torch
 from PIL import Image
 
-import aperture_fab.optimize.optimizer as optimize_module
 import aperture_fab.io.files as files_module
+import aperture_fab.optimize.optimizer as optimize_module
 import aperture_fab.pipeline.design_job as pipeline_module
 from aperture_fab.config.config import Config, parse_toml, resolve
 from aperture_fab.io.files import load_targets, write_atomic

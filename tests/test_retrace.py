@@ -1,8 +1,7 @@
-"""The view traced through the written mesh (aperture_fab.optics.retrace) against the fast model,
-exact
-light levels, the two samplings against each other and its own error estimate. Every part is
-built with make_part (or build_mesh), written as STL and read back, so what is traced is the file
-a user would print."""
+"""The view traced through the written mesh (aperture_fab.validation.retrace) against the fast
+model, exact light levels, the two samplings against each other and its own error estimate. Every
+part is built with make_part (or build_mesh), written as STL and read back, so what is traced is the
+file a user would print."""
 
 from __future__ import annotations
 
@@ -25,7 +24,8 @@ from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.formats import read_stl, stl_bytes
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optics.retrace import (
+from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
+from aperture_fab.validation.retrace import (
     DEFAULT_SAMPLES,
     MOST_SAMPLES,
     RAY_BUDGET,
@@ -40,7 +40,6 @@ from aperture_fab.optics.retrace import (
     _strata,
     trace_mesh_view,
 )
-from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
 from aperture_fab.validation.validate import layout_fractions
 
 PROCESS = PROCESSES["photomask"]
@@ -401,7 +400,7 @@ def test_samples_round_up_to_whole_replicates(sampling):
 
 def test_the_ray_budget_gives_dense_plates_fewer_rays_per_pair():
     from aperture_fab.fabrication.mesh_holes import mesh_hole_loops
-    from aperture_fab.optics.retrace import _budget_samples
+    from aperture_fab.validation.retrace import _budget_samples
 
     scene, part, _, _ = random_case("straight")
     loops = mesh_hole_loops(written_mesh(part))

@@ -1,6 +1,5 @@
 """Tracked displays: `aperture_fab.optimize.tracking` (the display solved per eye state, the plate
-fixed)
-and the `aperture-fab display` command."""
+fixed) and the `aperture-fab display` command."""
 
 from __future__ import annotations
 

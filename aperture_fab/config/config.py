@@ -1,9 +1,8 @@
 """Configuration: a TOML document holding the scene and the optimizer settings, in layers.
 
 Precedence, lowest first: a preset (`aperture_fab.config.presets`), a user's TOML file, then
-overrides
-(dotted keys such as "plate.gap_mm", from command-line flags). Every section is optional in a
-file; what it leaves out comes from the preset.
+overrides (dotted keys such as "plate.gap_mm", from command-line flags). Every section is optional
+in a file; what it leaves out comes from the preset.
 
     preset = "near-eye"          # optional; the `preset` argument (CLI --preset) wins over it
     [display]   width_mm, height_mm, pixels = [nx, ny], cover_glass_mm, cover_glass_index,

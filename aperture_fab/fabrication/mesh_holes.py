@@ -1,12 +1,11 @@
 """The holes of a plate mesh, read from the mesh alone: boundary loops of its two flat faces.
 
-A plate (aperture_fab.fabrication.mesh, part coordinates) has a flat bottom face at z = 0 and a
-flat top face
-at z = thickness (the largest z); the eye looks at the top face from +z. Each face's triangles
-form a region whose boundary edges (edges used by one triangle of that face) make closed loops:
-the outer outline, the loop of largest area, and one loop per hole. The hole walls join each hole's
-bottom loop to its top loop; they are matched through the wall triangles (mesh connectivity), not
-by position, so a hole of any tilt is matched and a missing wall is reported.
+A plate (aperture_fab.fabrication.mesh, part coordinates) has a flat bottom face at z = 0 and a flat
+top face at z = thickness (the largest z); the eye looks at the top face from +z. Each face's
+triangles form a region whose boundary edges (edges used by one triangle of that face) make closed
+loops: the outer outline, the loop of largest area, and one loop per hole. The hole walls join each
+hole's bottom loop to its top loop; they are matched through the wall triangles (mesh connectivity),
+not by position, so a hole of any tilt is matched and a missing wall is reported.
 
 Per loop: the polygon's area A and area centroid (shoelace sums over the loop's directed edges,
 about the loop's vertex mean so float32 coordinates far from the origin lose nothing), the
@@ -15,11 +14,9 @@ the centroid). build_mesh's polygons have their circle's area, so the area radiu
 radius, and an oblique cylinder's centres at the two faces give its axis.
 
 hole_layout_from_mesh turns the loops back into a HoleLayout (aperture_fab.fabrication.layout): a
-hole's
-centre is the mean of its two loop centroids (the axis at mid-thickness), its cell is the
+hole's centre is the mean of its two loop centroids (the axis at mid-thickness), its cell is the
 mid-plane cell that centre lies in (HoleLayout.cell_edges_mm(0), the same grid for straight and
-convergent layouts), its axis (top - bottom) / thickness.
-"""
+convergent layouts), its axis (top - bottom) / thickness. """
 
 from __future__ import annotations
 

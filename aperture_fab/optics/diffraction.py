@@ -1,11 +1,10 @@
 """A diffraction-aware view: each hole's light spread in angle by its own Airy pattern.
 
 The geometric model (aperture_fab.optics.model) neglects diffraction. Light through a circular hole
-of
-diameter d is spread in angle by the Airy pattern I(theta) ~ [2 J1(x) / x]^2 with
-x = pi d sin(theta) / lambda (first dark ring at sin(theta) = 1.22 lambda / d). Display pixels
-are mutually incoherent, so intensities add: the diffraction-aware view is the geometric view of
-each hole's light convolved with that hole's Airy pattern, per colour channel.
+of diameter d is spread in angle by the Airy pattern I(theta) ~ [2 J1(x) / x]^2 with x = pi d
+sin(theta) / lambda (first dark ring at sin(theta) = 1.22 lambda / d). Display pixels are mutually
+incoherent, so intensities add: the diffraction-aware view is the geometric view of each hole's
+light convolved with that hole's Airy pattern, per colour channel.
 
 `diffraction_view` groups the holes by diameter (a quantized layout has a few distinct sizes;
 continuous ones are binned into log-spaced classes), renders the geometric view with only one

@@ -1,18 +1,16 @@
 """Fused CPU kernels (Numba) for the view through a plate: the model's hot path.
 
 The model (see `aperture_fab.optics.model` and docs/model.md) sums, for each view pixel and eye
-state,
-over the holes whose light can reach the pupil: (pupil share of the rays through the hole) x
-(the display's mean over the hole's window, read from the pre-filtered stack). These kernels do
-that for a batch of eye states in one pass over the view, computing each (view pixel, hole)
-pair's geometry on the fly from the plate's grid instead of storing a pair table: nothing per
-pair is written to memory, so the cost is arithmetic and reads of a stack that stays in cache,
-and memory does not grow with the plate or the eyebox.
+state, over the holes whose light can reach the pupil: (pupil share of the rays through the hole) x
+(the display's mean over the hole's window, read from the pre-filtered stack). These kernels do that
+for a batch of eye states in one pass over the view, computing each (view pixel, hole) pair's
+geometry on the fly from the plate's grid instead of storing a pair table: nothing per pair is
+written to memory, so the cost is arithmetic and reads of a stack that stays in cache, and memory
+does not grow with the plate or the eyebox.
 
 The arithmetic is the same as `aperture_fab.optics.model`'s torch path (which is kept as the
-reference
-and for CUDA); the tests compare the two, values and gradients. Geometry is in float64; the stack
-is read in its own dtype; sums are kept in float64.
+reference and for CUDA); the tests compare the two, values and gradients. Geometry is in float64;
+the stack is read in its own dtype; sums are kept in float64.
 
 Layouts: the stack is (L, H, W, C) (channels last, so a tap reads C adjacent values); views are
 (S, C, ny, nx). `states` rows hold, per eye state: pupil-centre x, y (mm), pupil radius at the

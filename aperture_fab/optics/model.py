@@ -256,8 +256,7 @@ class Renderer:
         as its square), so no pair is lost; holes that come to overlap add their light (no
         union). Offsets beyond the plate's size are rejected.
     backend: "kernel" (fused CPU kernels, `aperture_fab.optics.kernels`: geometry on the fly, a
-    batch
-        of eye states in one pass), "torch" (pair tables and grid_sample: CUDA, and the
+        batch of eye states in one pass), "torch" (pair tables and grid_sample: CUDA, and the
         reference the kernels are tested against) or "auto" (kernel on the CPU, torch on CUDA).
     """
 

@@ -7,11 +7,10 @@ DEFAULT_SHARE of the memory available now) and raises a ValueError that names th
 budget and what to change, before the optimizer allocates anything.
 
 The model follows what `aperture_fab.optics.model.Renderer` and `aperture_fab.optimize.optimizer`
-allocate
-(sizes in elements; isz = bytes per element of the working dtype; C channels, T targets, S eye
-states per pass, N = ny x nx view pixels, K cells; the display stack is C x L x H' x W', the
-display padded by `pad` pixels per side and pre-filtered at L window radii through FFTs of
-FH x FW; see `stack_shape`):
+allocate (sizes in elements; isz = bytes per element of the working dtype; C channels, T targets, S
+eye states per pass, N = ny x nx view pixels, K cells; the display stack is C x L x H' x W', the
+display padded by `pad` pixels per side and pre-filtered at L window radii through FFTs of FH x FW;
+see `stack_shape`):
 
 - both paths: the display stack (irfft output C x L x FH x FW, of which the stack is a slice),
   its FFT buffers (the product spectrum C x L x FH x (FW/2+1) complex, the kernel spectrum

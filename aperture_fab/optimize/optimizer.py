@@ -220,12 +220,11 @@ def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                   targets: torch.Tensor, states: EyeStates, tail_share: float) -> torch.Tensor:
     """The loss of a tracked design (optimizer.tracking = "tracked"): each eye state sees the
     display content solved for it (`aperture_fab.optimize.tracking.solve_display`,
-    TRACKED_SOLVE_ITERATIONS
-    of MLEM warm-started from `displays`). No gradient flows through the solve: at a solved
-    display the loss is stationary in the display, so the plate's gradient is the partial one
-    (the envelope theorem; approximate, as a few iterations do not reach the optimum). Its
-    value is the tracked loss; its gradient moves the plate by the tracked loss and the warm
-    start `displays` by their own (untracked) loss, the plate held."""
+    TRACKED_SOLVE_ITERATIONS of MLEM warm-started from `displays`). No gradient flows through
+    the solve: at a solved display the loss is stationary in the display, so the plate's
+    gradient is the partial one (the envelope theorem; approximate, as a few iterations do
+    not reach the optimum). Its value is the tracked loss; its gradient moves the plate by the
+    tracked loss and the warm start `displays` by their own (untracked) loss, the plate held."""
     from aperture_fab.optimize.tracking import solve_display  # tracking imports this module
 
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)

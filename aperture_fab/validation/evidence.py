@@ -216,8 +216,7 @@ def _ordered(names: Any) -> list[str]:
 def eye_distribution_block(eyes: EyeQuality, names: tuple[str, ...], targets: np.ndarray
                            ) -> dict[str, Any]:
     """report.json's "eye_distribution" block (aperture_fab.validation.report, EYE_DISTRIBUTION):
-    the
-    summary, the eyebox map, the pupil and focus sweeps and the thumbnails' offsets and PSNR.
+    the summary, the eyebox map, the pupil and focus sweeps and the thumbnails' offsets and PSNR.
 
     targets: (T, C, ny, nx) linear, the targets the thumbnails are scored against."""
     summary = eyes.summary()

@@ -1,9 +1,8 @@
 """The validation report's figures: PNG bytes from arrays, drawn with matplotlib.
 
 Pure functions, values in and PNG bytes out; aperture_fab.validation.report_html places them on the
-page.
-matplotlib is imported inside the functions (an optional package: pip install matplotlib), and
-only its object-oriented API is used, so no pyplot global figure state.
+page. matplotlib is imported inside the functions (an optional package: pip install matplotlib),
+and only its object-oriented API is used, so no pyplot global figure state.
 """
 
 from __future__ import annotations

@@ -1,11 +1,10 @@
 """An independent view through the triangle mesh that was written: rays cast against the mesh.
 
 The optical model (aperture_fab.optics.model) integrates ideal circular holes in closed form; this
-module
-shares none of that. It takes the mesh as made (e.g. read back from the STL file), places it in the
-scene and casts rays from the eye's pupil to the display with Embree (the embreex package, which
-trimesh also uses), so it sees the polygonal holes, their tilts, the plate's real thickness and the
-outline.
+module shares none of that. It takes the mesh as made (e.g. read back from the STL file), places it
+in the scene and casts rays from the eye's pupil to the display with Embree (the embreex package,
+which trimesh also uses), so it sees the polygonal holes, their tilts, the plate's real thickness
+and the outline.
 
 Geometry (docs/model.md, millimetres): the display at z = 0, the mesh in part coordinates (bottom
 face at z = 0) shifted up by gap_mm, the pupil centre c = eye.positions_mm[position] at
