@@ -333,8 +333,8 @@ def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -
         for key in SECTION_KEYS[section]:
             if key in distribution_keys or key in ("eye_states", "fov_deg"):
                 assert near[section][key] != nominal[section][key], key
-            else:  # .get: to_dict leaves out display-side optics keys at their defaults
-                assert near[section].get(key) == nominal[section].get(key), key
+            else:
+                assert near[section][key] == nominal[section][key], key
     assert "near-eye-nominal" in PRESET_DESCRIPTIONS
     assert "the nominal eye only" in preset_summary("near-eye-nominal")
     assert "eyebox 4 x 4 mm ellipse, pupil 3-6 mm" in preset_summary("near-eye")

@@ -483,23 +483,15 @@ def _range_value(bounds: tuple[float, float] | None) -> Any:
     return NOMINAL if bounds is None else list(bounds)
 
 
-#: Display-side optics keys and their "off" values: `to_dict` writes each only when it differs,
-#: so the config of a display without them reads as it did before they existed.
-_DISPLAY_OPTICS_DEFAULTS = {"cover_glass_mm": 0.0, "cover_glass_index": 1.5,
-                            "subpixels": "none", "emission": "lambertian",
-                            "emission_exponent": 1.0}
-
-
 def to_dict(config: Config) -> dict[str, Any]:
-    """The fully resolved config as plain dicts and lists, in the TOML file's shape (the
-    display-side optics keys only where they differ from their defaults)."""
+    """The fully resolved config as plain dicts and lists, in the TOML file's shape: every value
+    explicit, so a written config re-runs the same even if a default changes."""
     display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
     opt = config.optimizer
-    optics = {key: getattr(display, key) for key, off in _DISPLAY_OPTICS_DEFAULTS.items()
-              if getattr(display, key) != off}
     sections: dict[str, dict[str, Any]] = {
         "display": {"width_mm": display.width_mm, "height_mm": display.height_mm,
-                    "pixels": list(display.pixels), **optics},
+                    "pixels": list(display.pixels),
+                    **{key: getattr(display, key) for key in SECTION_KEYS["display"][3:]}},
         "plate": {"cells": list(plate.cells), "pitch_mm": list(plate.pitch_mm),
                   "gap_mm": plate.gap_mm, "thickness_mm": plate.thickness_mm,
                   "hole_axis": plate.hole_axis},
