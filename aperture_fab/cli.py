@@ -351,7 +351,7 @@ EYE_COLUMN = 22
 
 
 def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
-                            validated: bool) -> None:
+                            validated: bool, verdicts: Sequence[dict[str, str]] = ()) -> None:
     """The design table's lead: PSNR p10 / median / p90 over the eye distribution per variant
     and target, then the eye-distribution verdict (or why there is none) and the report's other
     warnings and failures."""
@@ -383,7 +383,7 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
         print(textwrap.fill(f"eye distribution: {LEVEL_WORDS[verdict['level']]}: "
                             f"{verdict['text']}", 100, subsequent_indent="  "))
     # The report's other judged findings that need action (light, contrast, tolerances...).
-    for other in metrics.get("verdicts", []):
+    for other in verdicts:
         if other["level"] in ("fail", "warn") and other["topic"] != "eye distribution":
             print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
                                 f"{other['text']}", 100, subsequent_indent="  "))
@@ -429,7 +429,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
         _report_forced(output, result.part, config, fabrication)
     if output.quiet:
         return EXIT_OK
-    _print_eye_distribution(m, result.names, validated=validation is not None)
+    _print_eye_distribution(m, result.names, validated=validation is not None,
+                            verdicts=result.verdicts)
     nominal = [v for v in m if v != "eye_distribution"]
     print("PSNR after gain (dB), nominal eye position:")
     header = f"  {'target':<16}" + "".join(f"{v:>18}" for v in nominal)

@@ -106,21 +106,43 @@ def tiny_toml(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def designed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A tiny design's folder (design.npz, design.toml, holes.csv, plate.stl) and marker.png,
-    made once per test module through the command line."""
+def design_tiny(folder: Path, *flags: str) -> int:
+    """Write tiny.toml and marker.png into `folder` and run `aperture-fab design` on them with
+    `flags` (an --out among them), torch on one thread; the exit status."""
     from aperture_fab.cli import main
 
-    folder = tmp_path_factory.mktemp("designed")
     (folder / "tiny.toml").write_text(TINY_TOML)
     (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(32)))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        code = main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
-                     "--out", str(folder / "plate.stl"), "--no-validate", "--quiet"])
+        return main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
+                     *flags])
     finally:
         torch.set_num_threads(threads)
-    assert code == 0
+
+
+def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
+    """Make the optimizer's n-th loss evaluation raise KeyboardInterrupt (as Ctrl-C would)."""
+    import aperture_fab.optimize.optimizer as optimize_module
+
+    calls = {"n": 0}
+    real = optimize_module.gain_mse_states
+
+    def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise KeyboardInterrupt
+        return real(view, target)
+
+    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
+
+
+@pytest.fixture(scope="module")
+def designed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A tiny design's folder (design.npz, design.toml, holes.csv, plate.stl) and marker.png,
+    made once per test module through the command line."""
+    folder = tmp_path_factory.mktemp("designed")
+    assert design_tiny(folder, "--out", str(folder / "plate.stl"), "--no-validate",
+                       "--quiet") == 0
     yield folder

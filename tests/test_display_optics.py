@@ -384,9 +384,9 @@ def test_glass_must_fit_in_the_gap():
         resolve(overrides={"display.cover_glass_mm": 10.0})
 
 
-def test_config_keys_round_trip_and_stay_out_when_off():
+def test_config_keys_round_trip_and_are_written_when_off():
     plain = to_dict(resolve())
-    assert "cover_glass_mm" not in plain["display"]
+    assert plain["display"]["cover_glass_mm"] == 0.0  # every value explicit
     config = resolve(file_dict=parse_toml(
         '[display]\ncover_glass_mm = 0.5\ncover_glass_index = 1.52\nsubpixels = "rgb_stripe"\n'
         'emission = "cosine_power"\nemission_exponent = 2\n', "x"))

@@ -155,7 +155,8 @@ def test_svg_refuses_unknown_polarity(layout: HoleLayout) -> None:
 
 def test_csv_lists_every_hole(layout: HoleLayout) -> None:
     text = holes_csv(layout)
-    rows = list(csv.DictReader(io.StringIO(text)))
+    # The last line is a comment stating the outline (readers skip "#" lines).
+    rows = list(csv.DictReader(line for line in io.StringIO(text) if not line.startswith("#")))
     assert text.splitlines()[0] == "row,col,x_mm,y_mm,radius_mm,axis_x,axis_y"
     assert len(rows) == layout.count
     cells = np.array([[int(r["row"]), int(r["col"])] for r in rows])
@@ -179,7 +180,8 @@ def test_exports_of_an_empty_plate() -> None:
         outline_mm=(2.0, 2.0),
         thickness_mm=1.0,
     )
-    assert holes_csv(empty).count("\n") == 1
+    header, outline = holes_csv(empty).splitlines()  # no rows: the header and the outline
+    assert header.startswith("row,col") and outline.startswith("# plate outline_mm 2.000000")
     assert len(re.findall("<circle", svg_text(empty, "holes_black"))) == 0
     mesh = build_mesh(empty, 1e-3)
     assert check_mesh(read_stl(stl_bytes(mesh))).volume_mm3 == pytest.approx(4.0)

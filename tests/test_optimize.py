@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import interrupt_at_call
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -399,20 +400,6 @@ def count_calls(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
 
     monkeypatch.setattr(optimize_module, "gain_mse_states", counted)
     return calls
-
-
-def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
-    """Make the n-th loss evaluation raise KeyboardInterrupt (as Ctrl-C would)."""
-    calls = {"n": 0}
-    real = optimize_module.gain_mse_states
-
-    def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        calls["n"] += 1
-        if calls["n"] == n:
-            raise KeyboardInterrupt
-        return real(view, target)
-
-    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
 
 
 @pytest.mark.parametrize("method", list(RESUMABLE))

@@ -18,15 +18,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TINY_TOML, interrupt_at_call, tiny_config
 
-import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.cli import main
 from aperture_fab.io.images import encode_png
 from aperture_fab.io.manifest import MANIFEST_NAME, check_folder
 from aperture_fab.optimize.optimizer import Interrupted
 from aperture_fab.pipeline.design_job import run_design
 from aperture_fab.targets import asymmetric_marker, checker
-from tests.conftest import TINY_TOML, tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -236,19 +235,6 @@ def test_the_recorded_process_is_used_by_export_and_validate(tmp_path: Path) -> 
 # --- resume compares content ----------------------------------------------------------------
 
 
-def _interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
-    calls = {"n": 0}
-    real = optimize_module.gain_mse_states
-
-    def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        calls["n"] += 1
-        if calls["n"] == n:
-            raise KeyboardInterrupt
-        return real(view, target)
-
-    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
-
-
 @pytest.mark.parametrize("change", ["target", "config"])
 def test_resume_refuses_a_changed_input_naming_it(tmp_path: Path, change: str,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
@@ -256,7 +242,7 @@ def test_resume_refuses_a_changed_input_naming_it(tmp_path: Path, change: str,
     target = tmp_path / "t.png"
     target.write_bytes(encode_png(asymmetric_marker(32)))
     out = tmp_path / "out"
-    _interrupt_at_call(monkeypatch, 4)
+    interrupt_at_call(monkeypatch, 4)
     with pytest.raises(Interrupted):
         run_design([target], out, config, progress=False)
     monkeypatch.undo()

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import tiny_config
 
 from aperture_fab.fabrication.process import PROCESSES, Process, process_summary, resolve_process
 from aperture_fab.io.images import encode_png
@@ -29,7 +30,6 @@ from aperture_fab.validation.page_sections import png_size
 from aperture_fab.validation.report import build_report, report_json, validate_report
 from aperture_fab.validation.report_html import overall_level, report_html
 from aperture_fab.validation.verdicts import verdicts
-from tests.conftest import tiny_config
 from tests.test_report import complete_inputs
 
 #: The near-eye preset's field of view (deg) and the issue's example: 0.16 % of a 500 cd/m2

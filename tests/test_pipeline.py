@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import interrupt_at_call
 from PIL import Image
 
 import aperture_fab.io.files as files_module
@@ -334,20 +335,6 @@ def test_an_unwritable_output_folder_is_refused(tmp_path: Path, marker_png: Path
 
 
 # --- interruption and resume -----------------------------------------------------------------
-
-
-def interrupt_at_call(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
-    """Make the optimizer's n-th loss evaluation raise KeyboardInterrupt (as Ctrl-C would)."""
-    calls = {"n": 0}
-    real = optimize_module.gain_mse_states
-
-    def interrupted(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        calls["n"] += 1
-        if calls["n"] == n:
-            raise KeyboardInterrupt
-        return real(view, target)
-
-    monkeypatch.setattr(optimize_module, "gain_mse_states", interrupted)
 
 
 @pytest.fixture

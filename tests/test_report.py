@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import tiny_config
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -43,7 +44,6 @@ from aperture_fab.validation.report import (
     views_npz,
 )
 from aperture_fab.validation.report_html import SECTION_TITLES, report_html, verdicts
-from tests.conftest import tiny_config
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
 PSNR = {"open": 21.4, "regular_pinholes": 25.1, "random": 18.0, "optimized": 31.8,

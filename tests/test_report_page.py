@@ -14,10 +14,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-import torch
+from conftest import design_tiny
 from PIL import Image
 
-from aperture_fab.io.images import encode_png
 from aperture_fab.validation import figures, part_figures
 from aperture_fab.validation.figures import (
     PANEL_INCHES,
@@ -30,7 +29,6 @@ from aperture_fab.validation.figures import (
 from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
 from aperture_fab.validation.report_html import SECTION_TITLES
 from aperture_fab.validation.variants import VARIANTS
-from tests.conftest import TINY_TOML, asymmetric_marker
 from tests.test_report import chromium, chromium_dom
 
 #: The longest label a view panel gets after the variant's title.
@@ -125,20 +123,9 @@ def test_the_check_sees_a_title_wider_than_its_figure(drawn: list[Any],
 @pytest.fixture(scope="module")
 def report_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """A tiny design, validated: its output folder (report.html, report.json, ...)."""
-    from aperture_fab.cli import main
-
     folder = tmp_path_factory.mktemp("page")
-    (folder / "tiny.toml").write_text(TINY_TOML)
-    (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(32)))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        code = main(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
-                     "--out", str(folder / "out" / "plate.stl"), "--tolerance-samples", "2",
-                     "--mesh-samples", "8", "--quiet"])
-    finally:
-        torch.set_num_threads(threads)
-    assert code == 0
+    assert design_tiny(folder, "--out", str(folder / "out" / "plate.stl"), "--tolerance-samples",
+                       "2", "--mesh-samples", "8", "--quiet") == 0
     yield folder / "out"
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_config
 from PIL import Image
 
 from aperture_fab.cli import EXIT_BAD_INPUT, main
@@ -20,7 +21,6 @@ from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import gain_mse_states
 from aperture_fab.optimize.tracking import solve_display, tracked_views
 from aperture_fab.targets import natural
-from tests.conftest import tiny_config
 from tests.test_imports import CHILD, run_child
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

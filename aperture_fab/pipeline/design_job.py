@@ -80,6 +80,8 @@ class DesignResult:
         snapped plate, or re-fitted to the part when no iteration saw it (None when the display
         shows the targets, or without a part): what the device should show.
     timings_s: seconds per stage.
+    verdicts: the report's findings ({"topic", "level", "text"}, most important first) when
+        run_design validated the part; empty otherwise.
     """
 
     config: Config
@@ -91,6 +93,7 @@ class DesignResult:
     part: Part | None = None
     built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
+    verdicts: list[dict[str, str]] = field(default_factory=list)
 
 
 def design(
@@ -379,7 +382,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     write_atomic(folder / "report.html", evidence.html)
     write_atomic(folder / "report.json", report_json(evidence.report))
     result.metrics["eye_distribution"] = eye_headline(evidence.report)
-    result.metrics["verdicts"] = evidence.report["verdicts"]
+    result.verdicts[:] = evidence.report["verdicts"]
     return checked
 
 
