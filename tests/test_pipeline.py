@@ -21,7 +21,7 @@ import aperture_fab.optimize.optimizer as optimize_module
 import aperture_fab.pipeline.design_job as pipeline_module
 from aperture_fab.config.config import Config, parse_toml, resolve
 from aperture_fab.io.files import load_targets, write_atomic
-from aperture_fab.io.images import encode_png, linear_to_srgb, resample
+from aperture_fab.io.images import TargetWarning, encode_png, linear_to_srgb, resample
 from aperture_fab.optimize.optimizer import Interrupted
 from aperture_fab.pipeline.design_job import DesignResult, design, run_design
 from aperture_fab.targets import asymmetric_marker, checker, pixel_art
@@ -204,7 +204,8 @@ def test_run_design_writes_every_output(tmp_path: Path, make_config: MakeConfig,
         assert (folder / "checkpoint.pt").is_file()
 
     monkeypatch.setattr(pipeline_module, "_save_checkpoint", save)
-    result = run_design([target], tmp_path / "out" / "plate.stl", config, progress=False)
+    with pytest.warns(TargetWarning, match="stretched"):  # a square target, a 4:3 display
+        result = run_design([target], tmp_path / "out" / "plate.stl", config, progress=False)
     folder = tmp_path / "out"
     name = "pixel_art"  # the file stem, made safe for file names
     assert result.names == (name,)
