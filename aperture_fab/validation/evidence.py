@@ -62,9 +62,14 @@ class Evidence:
     views_npz: bytes
 
 
+#: The packages whose versions the report records: those whose code computes its figures.
+REPORTED_PACKAGES = ("aperture-fab", "torch", "numpy", "numba", "manifold3d", "embreex",
+                     "scikit-image")
+
+
 def _versions() -> dict[str, str]:
     out = {"python": platform.python_version()}
-    for package in ("aperture-fab", "torch", "numpy", "trimesh", "manifold3d", "scikit-image"):
+    for package in REPORTED_PACKAGES:
         try:
             out[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
