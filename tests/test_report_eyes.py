@@ -290,3 +290,18 @@ def test_the_terminal_says_when_the_distribution_was_not_judged(
     assert "validation.eye_states = 0" in capsys.readouterr().out
     _print_eye_distribution({}, NAMES, validated=False)
     assert "--no-validate" in capsys.readouterr().out
+
+
+def test_the_terminal_lists_the_reports_other_warnings_and_failures(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    report = report_for(synthetic_eyes([OPEN_DB - 1.5, 30.0], targets=2), ("letter", "grid"))
+    verdicts = [{"topic": "light", "level": "warn", "text": "The view is mesopic."},
+                {"topic": "contrast", "level": "fail", "text": "Leakage."},
+                {"topic": "mesh", "level": "pass", "text": "Watertight."},
+                {"topic": "eye distribution", "level": "fail", "text": "Printed above."}]
+    _print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
+                            validated=True, verdicts=verdicts)
+    out = capsys.readouterr().out
+    assert "light: WARN: The view is mesopic." in out
+    assert "contrast: FAIL: Leakage." in out
+    assert "Watertight" not in out and "Printed above" not in out
