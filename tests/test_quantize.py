@@ -332,6 +332,18 @@ def test_losing_most_of_the_open_area_is_unmakeable_unless_forced() -> None:
     assert layout.count == 36
 
 
+def test_a_design_below_one_smallest_hole_says_so() -> None:
+    """One cell asks for a sliver of a hole: nothing can be made, and the web is not why."""
+    plate = make_plate(6, 6, (0.15, 0.15), 0.005)
+    a = np.zeros((6, 6))
+    a[5, 5] = 0.002
+    with pytest.raises(UnmakeableError) as info:
+        quantize(a, plate, PROCESSES["photomask"])
+    message = str(info.value)
+    assert "lose 100%" in message and "smaller than the smallest photomask makes" in message
+    assert "web" not in message and "scaling the plate" not in message
+
+
 def test_few_clipped_cells_get_one_violation_each() -> None:
     plate = make_plate(4, 4, (0.25, 0.25), 0.05)
     a = np.full((4, 4), 0.1)

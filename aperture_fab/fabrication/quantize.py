@@ -151,7 +151,22 @@ def _scale_to_make(a: np.ndarray, process: Process, plate: Plate) -> float | Non
     return hi
 
 
-def _lost_area_error(a: np.ndarray, process: Process, plate: Plate, lost: float) -> str:
+def _lost_area_error(a: np.ndarray, process: Process, plate: Plate, lost: float,
+                     smallest_mm: float) -> str:
+    """Why the design loses `lost` of its open area, and what to change. The loss comes from
+    holes larger than the web allows or, when those alone lose too little, from holes below
+    the smallest the process makes (smallest_mm, a radius) that error diffusion could not
+    gather into whole holes."""
+    if _clip_loss(a, process, plate, 1.0) <= MAX_LOST_FRACTION:
+        d = 2 * smallest_mm
+        return (
+            f"{process.name} would lose {lost:.0%} of the design's open area (more than "
+            f"{MAX_LOST_FRACTION:.0%}): it asks for holes smaller than the smallest "
+            f"{process.name} makes ({d:.3g} mm), and too few of them to gather into holes that "
+            f"size. Give a design with more open area (a larger optimizer.min_efficiency), or a "
+            "process with a smaller minimum hole (aperture-fab processes). Pass force=True to "
+            "get the layout anyway."
+        )
     others = [
         n for n in makeable_processes(plate, exclude=process.name)
         if _clip_loss(a, PROCESSES[n], plate, 1.0) <= MAX_LOST_FRACTION
@@ -347,7 +362,7 @@ def quantize(
     total = float(wanted.sum())
     lost = (total - float(np.sum(math.pi * made_r**2))) / total if total > 0 else 0.0
     if lost > MAX_LOST_FRACTION:
-        message = _lost_area_error(a, process, plate, lost)
+        message = _lost_area_error(a, process, plate, lost, smallest)
         if not force:
             raise UnmakeableError(message)
         violations.append(Violation("open_area", None, math.sqrt(total / math.pi),
