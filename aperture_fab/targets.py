@@ -20,6 +20,7 @@ __all__ = [
     "asymmetric_marker",
     "checker",
     "digit",
+    "line_pairs",
     "natural",
     "pixel_art",
 ]
@@ -220,6 +221,27 @@ def checker(size: int = 32, cells: int = 8) -> np.ndarray:
     return np.repeat(white[None].astype(np.float64), 3, axis=0)
 
 
+#: Bar periods (as shares of the image side) of the line-pair pattern's groups, coarse to fine.
+LINE_PERIODS = (1 / 4, 1 / 8, 1 / 16)
+
+
+def line_pairs(size: int = 64) -> np.ndarray:
+    """A resolution pattern: white bars on black, in three groups of decreasing period (a
+    quarter, an eighth and a sixteenth of the side), vertical bars in the top half and
+    horizontal ones in the bottom half, each group in its own column."""
+    _check_size("line_pairs", size, 2 * round(1 / LINE_PERIODS[-1]))
+    u = (np.arange(size) + 0.5) / size
+    image = np.zeros((size, size))
+    width = 1 / len(LINE_PERIODS)
+    for k, period in enumerate(LINE_PERIODS):
+        column = (u >= k * width) & (u < (k + 1) * width)
+        bars = ((u - k * width) % period) < period / 2
+        top, bottom = u < 0.5, u >= 0.5
+        image[np.ix_(top, column)] = bars[column][None, :]
+        image[np.ix_(bottom, column)] = ((u % period) < period / 2)[bottom][:, None]
+    return np.repeat(image[None], 3, axis=0)
+
+
 def _ridge(x: np.ndarray, rng: np.random.Generator, base: float, amplitude: float) -> np.ndarray:
     """A mountain ridge height (0 top, 1 bottom) along x in [0, 1]: octaves of random sines."""
     height = np.full_like(x, base)
@@ -274,5 +296,6 @@ EXAMPLES: dict[str, Callable[[], np.ndarray]] = {
     "pixel-art": pixel_art,
     "natural": natural,
     "checker": checker,
+    "line-pairs": line_pairs,
     "marker-F": asymmetric_marker,
 }

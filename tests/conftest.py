@@ -1,8 +1,9 @@
 """Shared fixtures: a tiny scene so design, optimize and CLI tests run in a fraction of a second.
 
 TINY is a 4 x 4 mm display of 32 x 32 pixels behind a 16 x 16 plate of 0.25 mm cells, seen on a
-16 x 16 view, on the CPU, for a handful of iterations, from the nominal eye point (preset
-near-eye-nominal; tiny_config("near-eye") samples the eye distribution). Its overrides use the
+16 x 16 view, on the CPU, for a handful of iterations, without the preset's light floor, from
+the nominal eye point (preset near-eye-nominal; tiny_config("near-eye") samples the eye
+distribution). Its overrides use the
 dotted keys of `aperture_fab.config.config.resolve`; TINY_TOML is the same as a config file for the
 CLI. Modules that run the optimizer use `pytestmark = pytest.mark.usefixtures("one_torch_thread")`.
 """
@@ -32,6 +33,8 @@ TINY: dict[str, Any] = {
     "eye.view_pixels": [16, 16],
     "optimizer.iterations": TINY_ITERATIONS,
     "optimizer.device": "cpu",
+    # The plain image loss: the preset's light floor has its own tests (test_brightness_floor).
+    "optimizer.min_efficiency": 0.0,
 }
 
 TINY_TOML = f"""\
@@ -52,6 +55,7 @@ view_pixels = [16, 16]
 [optimizer]
 iterations = {TINY_ITERATIONS}
 device = "cpu"
+min_efficiency = 0.0
 """
 
 

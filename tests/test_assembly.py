@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from aperture_fab.cli import main
+from aperture_fab.config.presets import PHOTOMASK_EMULSION_MM
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.io.manifest import MANIFEST_NAME, check_folder
 from aperture_fab.pipeline.assembly_job import (
@@ -134,7 +135,7 @@ def test_plate_geometry_is_the_part_as_built(designed: Path) -> None:
     part = load_design_part(designed).part
     assert (geometry.width_mm, geometry.height_mm) == part.layout.outline_mm
     assert geometry.corner_cut_mm == part.corner_cut_mm
-    assert geometry.thickness_mm == 0.3 and geometry.gap_mm == 10.0
+    assert geometry.thickness_mm == PHOTOMASK_EMULSION_MM and geometry.gap_mm == 10.0
 
 
 def test_the_command_writes_the_sheet(designed: Path, tmp_path: Path,

@@ -31,6 +31,7 @@ from aperture_fab.cli import (
     EXIT_USAGE,
     main,
 )
+from aperture_fab.config.presets import PHOTOMASK_EMULSION_MM
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.io.formats import stl_bytes
 from aperture_fab.io.images import encode_png
@@ -67,7 +68,9 @@ def _checkpoint(folder: Path) -> None:
 
 
 def _cube(folder: Path) -> None:
-    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-2, 2) for z in (0.0, 0.3)])
+    # as thick as the config's plate (photomask film's emulsion), so that only its holes differ
+    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-2, 2)
+                        for z in (0.0, PHOTOMASK_EMULSION_MM)])
     faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
     (folder / "cube.stl").write_bytes(stl_bytes(PlateMesh(vertices=corners, faces=faces)))
@@ -140,7 +143,7 @@ CASES: list[tuple[str, Setup, list[str], int, str]] = [
      EXIT_BAD_INPUT, "no holes found in {d}/empty.csv"),
     ("open fractions above 1", _scaled_design,
      ["export", "{d}/scaled.npz", "--out", "{d}/x/"], EXIT_BAD_INPUT,
-     "open_fraction holds values from 1.5 to"),
+     "open_fraction holds values from 1.5"),
     ("eye far away", _nothing,
      ["render", "{d}/design.npz", "--eye", "50,50", "--out", "{d}/v.png"], EXIT_BAD_INPUT,
      "--eye 50,50: the eye sees no light from the display at that position"),

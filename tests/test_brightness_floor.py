@@ -8,6 +8,7 @@ import torch
 from conftest import tiny_config
 
 from aperture_fab.config import resolve
+from aperture_fab.config.presets import LIGHT_FLOOR
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import digit
@@ -46,5 +47,9 @@ def test_bad_floors_are_refused(overrides: dict, fragment: str) -> None:
         resolve("near-eye", overrides=overrides)
 
 
-def test_no_floor_is_the_default() -> None:
-    assert resolve("near-eye").optimizer.min_efficiency == 0.0
+def test_the_default_floor_is_two_percent_and_tracking_drops_it() -> None:
+    assert resolve("near-eye").optimizer.min_efficiency == LIGHT_FLOOR == 0.02
+    assert resolve("seed").optimizer.min_efficiency == 0.0
+    # a tracked design asked for above the preset drops the preset's floor, not the user's
+    tracked = resolve("near-eye", overrides={"optimizer.tracking": "tracked"})
+    assert tracked.optimizer.min_efficiency == 0.0

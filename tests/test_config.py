@@ -14,7 +14,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
-from aperture_fab.config.presets import DEFAULT_PRESET, PRESET_DESCRIPTIONS, PRESETS, preset_summary
+from aperture_fab.config.presets import (
+    DEFAULT_PRESET,
+    DEFAULT_PROCESS,
+    PHOTOMASK_EMULSION_MM,
+    PRESET_DESCRIPTIONS,
+    PRESETS,
+    preset_summary,
+)
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.optics.scene import Display, Eye, Plate
 
@@ -38,7 +45,8 @@ def test_every_preset_resolves_and_gives_every_key(name: str) -> None:
     config = resolve(name)
     assert config.preset == name
     assert isinstance(config.optimizer, OptimizerSettings)
-    assert config.extra == {}
+    # the near-eye presets name their process (photomask film); the seed keeps the default
+    assert config.extra == ({} if name == "seed" else {"process": {"name": DEFAULT_PROCESS}})
     assert name in PRESET_DESCRIPTIONS
 
 
@@ -55,12 +63,12 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert (display.width_mm, display.height_mm, display.pixels) == (20.0, 20.0, (400, 400))
     assert display.pixel_mm == pytest.approx((0.05, 0.05))
     assert (plate.cells, plate.pitch_mm, plate.gap_mm, plate.thickness_mm, plate.hole_axis) == (
-        (80, 80), (0.25, 0.25), 10.0, 0.3, "chief_ray")
+        (80, 80), (0.25, 0.25), 10.0, PHOTOMASK_EMULSION_MM, "chief_ray")
     assert (eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm) == (4.0, 10.0, None)
     assert eye.view_pixels == (128, 128)
     assert eye.positions_mm == ((0.0, 0.0),) and eye.weights == (1.0,)
     # The field the display covers from every pupil centre of the 4 mm eyebox.
-    fov = full_fov_deg(20.0 - 4.0, 10.0 + 0.3 + 10.0)
+    fov = full_fov_deg(20.0 - 4.0, 10.0 + PHOTOMASK_EMULSION_MM + 10.0)
     assert eye.fov_deg == pytest.approx((fov, fov), rel=1e-12)
     assert fov / 128 == pytest.approx(0.34, abs=0.01)  # the "~0.34 deg per view pixel" claim
     opt = config.optimizer
@@ -89,8 +97,8 @@ def test_seed_preset_is_the_dissertation_setting() -> None:
 
 @pytest.mark.parametrize("name, expected", [
     ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
-                  "gap 10 mm", "thickness 0.3 mm", "pupil 4 mm", "eye relief 10 mm",
-                  "128 x 128", "43.0 x 43.0 deg", "optimized", "adam lr 0.05", "150 iterations"]),
+                  "gap 10 mm", "thickness 0.005 mm", "pupil 4 mm", "eye relief 10 mm",
+                  "128 x 128", "43.6 x 43.6 deg", "optimized", "adam lr 0.05", "150 iterations"]),
     ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",
               "thickness 0.2 mm", "straight", "sgd lr 0.8 momentum 0.9", "display target",
               "no early stop"]),
@@ -185,7 +193,7 @@ def test_precedence_preset_file_overrides() -> None:
     layered = resolve(file_dict=file, overrides={"plate.gap_mm": 14.0})
     assert layered.scene.plate.gap_mm == 14.0
     assert layered.scene.eye.pupil_mm == 3.0  # the file still counts where not overridden
-    assert layered.scene.plate.thickness_mm == 0.3  # and the preset where neither says
+    assert layered.scene.plate.thickness_mm == PHOTOMASK_EMULSION_MM  # and the preset
 
 
 def test_preset_from_file_unless_given() -> None:
@@ -206,10 +214,12 @@ def test_fov_display_follows_the_resolved_geometry() -> None:
     config = resolve(overrides={"plate.gap_mm": 20.0, "display.width_mm": 30.0})
     fov_x, fov_y = config.scene.eye.fov_deg
     # Seen from every pupil centre of the 4 mm eyebox: 2 mm less of the display on each side.
-    assert fov_x == pytest.approx(full_fov_deg(30.0 - 4.0, 10.0 + 0.3 + 20.0), rel=1e-12)
-    assert fov_y == pytest.approx(full_fov_deg(20.0 - 4.0, 10.0 + 0.3 + 20.0), rel=1e-12)
+    distance = 10.0 + PHOTOMASK_EMULSION_MM + 20.0
+    assert fov_x == pytest.approx(full_fov_deg(30.0 - 4.0, distance), rel=1e-12)
+    assert fov_y == pytest.approx(full_fov_deg(20.0 - 4.0, distance), rel=1e-12)
     point = resolve("near-eye-nominal", overrides={"display.width_mm": 30.0})
-    assert point.scene.eye.fov_deg[0] == pytest.approx(full_fov_deg(30.0, 20.3), rel=1e-12)
+    assert point.scene.eye.fov_deg[0] == pytest.approx(
+        full_fov_deg(30.0, distance - 10.0), rel=1e-12)
     with pytest.raises(ValueError, match=r"eye\.eyebox_mm = \[20\.0, 20\.0\].*display's half"):
         resolve(overrides={"eye.eyebox_mm": 20.0})
 
@@ -312,7 +322,7 @@ def test_near_eye_designs_for_a_moving_eye() -> None:
     assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.pupil_mm,
             eye.focus_range_diopters, eye.gaze_deg, eye.rotation_mm) == (
         (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, None, 0.0, 11.0)
-    assert (opt.eye_states, opt.tail_share, opt.tracking) == (16, 1.0, "untracked")
+    assert (opt.eye_states, opt.tail_share, opt.tracking) == (8, 1.0, "untracked")
 
 
 @pytest.mark.parametrize("name", ["near-eye-nominal", "seed"])

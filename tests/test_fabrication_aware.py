@@ -19,6 +19,7 @@ from aperture_fab.fabrication.part import (
     FabricationSettings,
     design_bounds,
     drawn_fractions,
+    made_optics,
     make_part,
 )
 from aperture_fab.fabrication.process import PROCESSES, resolve_process
@@ -32,6 +33,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 MakeConfig = Callable[..., Config]
 RESIN = PROCESSES["resin"]
+#: A plate resin makes (the presets' is photomask film's 5 um emulsion).
+RESIN_PLATE = {"plate.thickness_mm": 0.3}
 
 
 def resin_sizes(config: Config) -> MadeSizes:
@@ -39,7 +42,7 @@ def resin_sizes(config: Config) -> MadeSizes:
 
 
 def test_resin_levels_are_the_made_areas_of_its_radius_steps(make_config: MakeConfig) -> None:
-    config = make_config()
+    config = make_config(**RESIN_PLATE)
     plate = config.scene.plate
     made = resin_sizes(config)
     assert made.levels is not None and made.levels[0] == 0
@@ -88,7 +91,7 @@ def test_a_plate_of_made_sizes_is_built_exactly(seed: int) -> None:
     makeable, so the holes as made are the design's, cell for cell."""
     from tests.conftest import tiny_config
 
-    config = tiny_config()
+    config = tiny_config(**RESIN_PLATE)
     made = resin_sizes(config)
     assert made.levels is not None
     rng = np.random.default_rng(seed)
@@ -119,7 +122,8 @@ def run(config: Config, **kwargs: Any) -> Any:
 
 def test_fabrication_aware_run_ends_makeable_and_keeps_its_continuous_optimum(
         make_config: MakeConfig) -> None:
-    config = make_config(**{"optimizer.iterations": 10, "optimizer.quantize_share": 0.4})
+    config = make_config(**RESIN_PLATE,
+                         **{"optimizer.iterations": 10, "optimizer.quantize_share": 0.4})
     made = resin_sizes(config)
     result = run(config, bounds=design_bounds(config.scene, RESIN), made=made)
     assert made.levels is not None
@@ -130,7 +134,8 @@ def test_fabrication_aware_run_ends_makeable_and_keeps_its_continuous_optimum(
     assert displays.shape == result.displays.shape
     # The first 6 iterations are a plain 6-iteration run (one cosine cycle), and the kept
     # optimum is its result.
-    plain = run(make_config(**{"optimizer.iterations": 6, "optimizer.quantize_share": 0.0}),
+    plain = run(make_config(**RESIN_PLATE,
+                            **{"optimizer.iterations": 6, "optimizer.quantize_share": 0.0}),
                 bounds=design_bounds(config.scene, RESIN), made=made)
     assert plain.continuous is None
     np.testing.assert_allclose(result.loss_history[:6], plain.loss_history, rtol=1e-5)
@@ -138,7 +143,8 @@ def test_fabrication_aware_run_ends_makeable_and_keeps_its_continuous_optimum(
 
 
 def test_fabrication_aware_run_resumes_exactly(make_config: MakeConfig) -> None:
-    config = make_config(**{"optimizer.iterations": 12, "optimizer.checkpoint_every": 4,
+    config = make_config(**RESIN_PLATE,
+                         **{"optimizer.iterations": 12, "optimizer.checkpoint_every": 4,
                             "optimizer.precision": "float64", "optimizer.quantize_share": 0.5})
     made = resin_sizes(config)
     whole = run(config, made=made)
@@ -148,3 +154,23 @@ def test_fabrication_aware_run_resumes_exactly(make_config: MakeConfig) -> None:
         again = run(config, made=made, state=state)
         np.testing.assert_allclose(again.loss_history, whole.loss_history, rtol=1e-6)
         np.testing.assert_array_equal(again.open_fraction, whole.open_fraction)
+
+
+def test_an_as_made_run_snaps_every_iteration_and_resumes_exactly(
+        make_config: MakeConfig) -> None:
+    """quantize_share 1: every iteration sees holes the process makes and one made copy's
+    errors (photomask film, diffraction, veil); there is no unconstrained design to keep, the
+    display is fitted to the snapped plate, and a resume draws the same copies."""
+    process = PROCESSES["photomask"]
+    config = make_config(**{"optimizer.iterations": 8, "optimizer.checkpoint_every": 4,
+                            "optimizer.precision": "float64", "optimizer.quantize_share": 1.0})
+    made = made_sizes(config.scene.plate, process, config.scene.mid_plane_distance_mm)
+    optics = made_optics(config.scene, process)
+    assert optics.has_errors and optics.diffraction is not None
+    saved: list[dict[str, Any]] = []
+    whole = run(config, made=made, optics=optics, on_checkpoint=saved.append)
+    assert whole.snapped and whole.continuous is None
+    assert np.all(np.isin(whole.open_fraction, made.snap(whole.open_fraction)))
+    again = run(config, made=made, optics=optics, state=saved[0])
+    np.testing.assert_allclose(again.loss_history, whole.loss_history, rtol=1e-9)
+    np.testing.assert_array_equal(again.open_fraction, whole.open_fraction)

@@ -451,7 +451,7 @@ def test_each_iteration_draws_its_own_eye_states_reproducibly(make_config: MakeC
     config = make_config("near-eye")
     scene, settings = config.scene, config.optimizer
     first, second = (training_states(scene, settings, i) for i in (0, 1))
-    assert len(first) == settings.eye_states == 16
+    assert len(first) == settings.eye_states == 8
     assert not np.array_equal(first.offset_mm, second.offset_mm)
     np.testing.assert_array_equal(training_states(scene, settings, 0).offset_mm, first.offset_mm)
     point = make_config()  # near-eye-nominal: the scene's fixed positions

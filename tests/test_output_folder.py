@@ -21,6 +21,7 @@ import torch
 from conftest import TINY_TOML, interrupt_at_call, tiny_config
 
 from aperture_fab.cli import main
+from aperture_fab.config.presets import DEFAULT_PROCESS
 from aperture_fab.io.images import encode_png
 from aperture_fab.io.manifest import MANIFEST_NAME, check_folder
 from aperture_fab.optimize.optimizer import Interrupted
@@ -198,7 +199,7 @@ def test_outline_is_stated_in_every_record(folder: Path) -> None:
     recorded = tomllib.loads((folder / "design.toml").read_text())
     outline = recorded["part"]["outline_mm"]
     assert len(outline) == 2 and all(v > 4.0 for v in outline)  # 16 cells of 0.25 mm + margin
-    assert recorded["process"]["name"] == "resin"
+    assert recorded["process"]["name"] == DEFAULT_PROCESS
     assert set(recorded["fabrication"]) == {"force", "step", "alignment_cut", "svg_polarity"}
     summary = json.loads((folder / "design.json").read_text())
     assert summary["fabrication"]["outline_mm"] == pytest.approx(outline)

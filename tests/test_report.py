@@ -32,7 +32,11 @@ from aperture_fab.validation.figures import (
     figure_thumbnails,
     figure_views,
 )
-from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
+from aperture_fab.validation.part_figures import (
+    figure_errors,
+    figure_hole_map,
+    figure_made_front,
+)
 from aperture_fab.validation.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
@@ -118,6 +122,20 @@ def complete_inputs(targets: tuple[str, ...] = TARGETS) -> dict[str, Any]:
         "config": to_dict(config),
         "versions": {"aperture-fab": "0.1.0", "numpy": np.__version__},
     }
+
+
+def made_block(count: int = len(TARGETS)) -> dict[str, Any]:
+    """A "made_part" block as made_part_block gives it: the part 5 dB above its best rival."""
+    family = {"pitch_mm": [0.5, 1.0, 1.0], "diameter_mm": [0.06, 0.06, 0.1],
+              "efficiency": [0.011, 0.003, 0.008], "p10_db": [16.0, 17.0, 16.5],
+              "p50_db": [17.0, 18.0, 17.5]}
+    figures = {"efficiency": 0.01, "p10_db": [21.0] * count, "p50_db": [23.0] * count,
+               "p90_db": [25.0] * count}
+    best = {"pitch_mm": 0.5, "diameter_mm": 0.06, "efficiency": 0.011, "p10_db": [16.0] * count,
+            "p50_db": [17.0] * count, "p90_db": [18.0] * count}
+    return {"copies": 4, "states": 32, "neglected": ["wall scatter"], "part": figures,
+            "regular": {"family": family, "fitted": family, "best": best},
+            "margin_db": [5.0] * count}
 
 
 @pytest.fixture(scope="module")
@@ -557,13 +575,14 @@ def all_figures() -> dict[str, bytes]:
             "views": views, "hole_map": hole_map(rng),
             "errors": figure_errors(target, [("as built", 0.2 * target)]),
             "loss": figure_loss(np.geomspace(1, 1e-2, 20)), "eyebox": views,
-            "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0)}
+            "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0),
+            "made_front": figure_made_front(made_block())}
 
 
 @pytest.fixture(scope="module")
 def evil_report() -> dict[str, Any]:
     """A complete report whose second target is named like a script."""
-    return build_report(**complete_inputs(("letter", EVIL)))
+    return build_report(**complete_inputs(("letter", EVIL)), made_part=made_block(2))
 
 
 def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
@@ -589,11 +608,13 @@ def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
     assert all(u.startswith(("data:image/png;base64,", "#")) for u in parser.urls)
     assert "http://" not in page and "https://" not in page
     assert "Quantization and fabrication cost 0.6 dB." in page
-    # the verdict leads, then light and contrast; the eye distribution's figures come first
-    assert parser.headings[:4] == ["Verdict", "Findings", "Light and contrast",
-                                   "Over the eye distribution"]
-    assert parser.image_ids[:4] == ["fig-eye_map", "fig-eye_pupil", "fig-eye_focus",
-                                    "fig-eye_thumbnails"]
+    # the verdict leads, then the part as made and its figure, light and contrast, then the
+    # eye distribution's figures
+    assert parser.headings[:5] == ["Verdict", "Findings", "The part as made",
+                                   "Light and contrast", "Over the eye distribution"]
+    assert parser.image_ids[:5] == ["fig-made_front", "fig-eye_map", "fig-eye_pupil",
+                                    "fig-eye_focus", "fig-eye_thumbnails"]
+    assert "Margin at equal or more light: <b>+5.0 / +5.0 dB</b>" in page
 
 
 def test_html_escapes_names(evil_report: dict[str, Any]) -> None:
@@ -620,9 +641,10 @@ def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
     parser = PageParser()
     parser.feed(page)
     assert len(parser.images) == 1
-    # the tolerance and the eyebox say why they are missing in their own words
-    assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 3
+    # the tolerance, the eyebox and the part as made say why they are missing in their own words
+    assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 4
     assert "One nominal eye position only" in page
+    assert "The part as made not computed" in page
     assert "Tolerance analysis not computed." in page
 
 

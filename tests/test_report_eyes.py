@@ -23,7 +23,7 @@ from aperture_fab.validation.report import (
 )
 from aperture_fab.validation.report_html import EYE_MARGIN_DB, eye_verdict, report_html, verdicts
 from aperture_fab.validation.robustness import EyeQuality, grid_offsets
-from tests.test_report import all_figures, complete_inputs
+from tests.test_report import all_figures, complete_inputs, made_block
 
 NAMES = ("letter",)
 STATES = 8
@@ -220,7 +220,7 @@ def test_html_leads_with_the_eye_distribution_table_and_figures() -> None:
     page = report_html(report, figures, verdicts(report))
     lead = Lead()
     lead.feed(page)
-    assert lead.sections[:3] == ["verdict", "light", "eyes"]
+    assert lead.sections[:4] == ["verdict", "made", "light", "eyes"]
     first = lead.tables[0]
     assert first[0] == ["variant", "PSNR p10 (dB)", "PSNR median (dB)", "PSNR p90 (dB)",
                         "SSIM p10", "PSNR nominal (dB)"]
@@ -246,7 +246,7 @@ def test_html_leads_with_the_eye_distribution_table_and_figures() -> None:
 
 def test_html_with_every_figure_has_one_image_per_figure_key() -> None:
     eyes = synthetic_eyes(BEST_DB + 2)
-    report = report_for(eyes)
+    report = {**report_for(eyes), "made_part": made_block(len(NAMES))}
     figures = {**all_figures(), **eye_figures(eyes, NAMES, np.ones((1, 1, 6, 6)))}
     lead = Lead()
     lead.feed(report_html(report, figures, verdicts(report)))

@@ -471,7 +471,14 @@ def resolve(
                 f'eye.fov_deg = "display": {err}') from err
     eye = _build(Eye, eye_args, layers)
     scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
-    optimizer = _build(OptimizerSettings, _section(layers, "optimizer"), layers)
+    optimizer_args = _section(layers, "optimizer")
+    # A tracked design set above the layer that set the light floor drops the floor (a preset's
+    # floor holds one display's brightness; a tracked display changes per eye state).
+    if (optimizer_args["tracking"] == "tracked"
+            and layers.sources["optimizer.min_efficiency"][0]
+            < layers.sources["optimizer.tracking"][0]):
+        optimizer_args["min_efficiency"] = 0.0
+    optimizer = _build(OptimizerSettings, optimizer_args, layers)
     return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra))
 
 

@@ -12,8 +12,10 @@ Why the "near-eye" numbers (the default):
   across (sqrt(2 lambda h) at 550 nm), so diffraction and geometric blur are balanced;
 - cells 80 x 80 at 0.25 mm pitch: the plate covers the display, and a cell spans about 5 display
   pixels, so each hole has its own small window of content to show;
-- thickness 0.3 mm: printable and stiff on an MSLA resin printer; chief-ray holes keep the
-  oblique bundles from being clipped by the walls of a plate that thick;
+- process photomask film, thickness 0.005 mm (its emulsion, the only opaque layer): it makes
+  holes from 0.025 mm with 0.016 mm webs and is opaque (OD 4), where resin's 0.088 mm holes and
+  OD 2 leave a grey veil over a view six times brighter than the light through the holes
+  (docs/processes.md, "The default process"); chief-ray holes are kept for thicker plates;
 - pupil 4 mm: an indoor pupil; eye relief 10 mm: close, like glasses on the nose;
 - the eye moves (docs/design.md section 3): the design is optimized over a distribution of eye
   states, 16 fresh ones each iteration, for one display content (untracked): the pupil centre
@@ -24,21 +26,20 @@ Why the "near-eye" numbers (the default):
   part designed over the eyebox, 33.6 to 33.2 dB at the nominal point for a nominal-point
   part; states at one focus also share their display samples in the renderer, so sampling
   focus costs several times more; focus_range_diopters = [0, 0.5] adds it), no gaze rotation
-  (the field is 43 deg and viewed mostly straight through; gaze_deg > 0 adds it with the
+  (the field is 44 deg and viewed mostly straight through; gaze_deg > 0 adds it with the
   eye's centre of rotation 11 mm behind the pupil);
 - view 128 x 128 over the field the display covers from every pupil centre of the eyebox
-  (43 deg; 52 deg from the nominal point alone: an eye 2 mm off the axis would see past the
+  (44 deg; 53 deg from the nominal point alone: an eye 2 mm off the axis would see past the
   display's edge over the outer 5 deg, which no plate or display content can fix): about
   0.34 deg per view pixel, finer than the geometric blur of a hole (about 2r / h ~ 0.6 deg), so
   the model resolves it;
-- Adam at 0.05 from a regular pinhole array, 150 iterations: 90 free, then 60 that see the
-  holes the process makes (quantize_share 0.4), each phase with its own cosine decay, stopping
-  a phase after 60 iterations without progress; 16 eye states per iteration. States focused at
-  infinity share most of their cost (the renderer computes each hole's window once for all of
-  them: 16 states cost about 3.5 times one), so the whole design job (optimize, build, export,
-  validate over the eye distribution, report) stays within 3 minutes on 2 CPU cores. On
-  natural, 16 states x 150 iterations reach a 10th percentile of 19.7 dB where 8 x 100 reach
-  18.7 (the regular pinholes: 18.1).
+- Adam at 0.05 from a regular pinhole array (the cells between its holes open at a small
+  hole), 150 iterations that all see the part as made (quantize_share 1: holes the process
+  makes, a made copy's errors, diffraction and the material's veil; docs/model.md), with a
+  light floor of 2 % (min_efficiency), stopping after 60 iterations without progress; 8 eye
+  states per iteration: the photomask plate is dense (thousands of holes), which doubles the
+  renderer's cost per state, and 8 states reach about what 16 do as made on natural (20.3 dB
+  p10 at 2.4 % light against 20.7 at 2.2 %, both judged as made over 4 copies x 32 states).
 
 The "near-eye-nominal" preset is near-eye judged and optimized at its one nominal eye state
 (the behaviour before eye distributions): the baseline that
@@ -59,6 +60,13 @@ from aperture_fab.optics.scene import Display, display_fov_deg
 __all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_DESCRIPTIONS", "preset_summary"]
 
 DEFAULT_PRESET = "near-eye"
+
+#: The default process and its plate: printed photomask film, whose opaque layer is its
+#: emulsion, about 5 um thick (the 0.18 mm polyester base under it is clear).
+DEFAULT_PROCESS = "photomask"
+PHOTOMASK_EMULSION_MM = 0.005
+#: The default brightness floor (optimizer.min_efficiency): 2 % of the open display's light.
+LIGHT_FLOOR = 0.02
 
 _SEED_WIDTH_MM = 10.0
 _SEED_HEIGHT_MM = 15.0
@@ -92,7 +100,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "cells": [80, 80],
             "pitch_mm": [0.25, 0.25],
             "gap_mm": 10.0,
-            "thickness_mm": 0.3,
+            "thickness_mm": PHOTOMASK_EMULSION_MM,
             # Tilted toward the eye: straight holes in a 0.3 mm plate vignette the field's edge
             # (offset t tan(theta) = 0.15 mm at 26 deg, as wide as a hole).
             "hole_axis": "chief_ray",
@@ -121,18 +129,19 @@ PRESETS: dict[str, dict[str, Any]] = {
             "init": "pinholes",
             "display": "optimized",
             "efficiency_weight": 0.0,
-            "min_efficiency": 0.0,
+            "min_efficiency": LIGHT_FLOOR,
             "plateau_patience": 60,
             "plateau_tolerance": 1e-4,
             "seed": 0,
             "precision": "float32",
             "device": "auto",
             "checkpoint_every": 50,
-            "quantize_share": 0.4,
-            "eye_states": 16,
+            "quantize_share": 1.0,
+            "eye_states": 8,
             "tail_share": 1.0,
             "tracking": "untracked",
         },
+        "process": {"name": DEFAULT_PROCESS},
     },
     "seed": {
         "display": {

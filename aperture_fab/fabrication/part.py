@@ -17,6 +17,8 @@ from aperture_fab.fabrication.mesh import MeshReport, PlateMesh, build_mesh, che
 from aperture_fab.fabrication.process import Process, UnmakeableError, resolve_process
 from aperture_fab.fabrication.quantize import made_sizes, quantize
 from aperture_fab.fabrication.rules import open_fraction_bounds
+from aperture_fab.optics.as_made import MadeOptics
+from aperture_fab.optics.leakage import solid_transmission
 from aperture_fab.optics.scene import Plate, Scene
 
 __all__ = [
@@ -27,6 +29,7 @@ __all__ = [
     "design_bounds",
     "drawn_fractions",
     "make_part",
+    "made_optics",
 ]
 
 #: Chord error of hole polygons as a share of the process's radius sigma: well inside tolerance.
@@ -90,6 +93,23 @@ def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:
     except UnmakeableError:  # forced past the process's rules: make_part records them
         made = a_max
     return (0.0, min(made, scene.plate.max_open_fraction))
+
+
+def made_optics(scene: Scene, process: Process, diffraction: bool = True) -> MadeOptics:
+    """How `process` makes this scene's plate, for the view (`aperture_fab.optics.as_made`):
+    its random radius and position errors, its material's transmission and, with
+    `diffraction`, the Airy kernels of the hole sizes it makes in a cell."""
+    mixture = None
+    if diffraction:
+        from aperture_fab.optics.diffraction import airy_mixture
+
+        sizes = made_sizes(scene.plate, process, scene.mid_plane_distance_mm)
+        cell = scene.plate.pitch_mm[0] * scene.plate.pitch_mm[1]
+        d_lo, d_hi = (2 * math.sqrt(level * cell / math.pi) for level in (sizes.lo, sizes.hi))
+        eye = scene.eye
+        mixture = airy_mixture(d_lo, d_hi, eye.view_step, eye.view_pixels)
+    return MadeOptics(process.radius_sigma_mm, process.position_sigma_mm,
+                      solid_transmission(process.optical_density), mixture)
 
 
 @dataclass(frozen=True)

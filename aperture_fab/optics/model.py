@@ -29,6 +29,7 @@ was.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Any, Literal, cast
@@ -337,6 +338,14 @@ class Renderer:
         if self.hole_offset_mm is not None:
             extra += float(np.linalg.norm(self.hole_offset_mm, axis=-1).max())
         return extra
+
+    def with_hole_offsets(self, hole_offset_mm: np.ndarray | None) -> Renderer:
+        """This renderer with other hole offsets (see the class docstring), sharing its display
+        kernels: cheap enough to move the holes by fresh process errors every iteration."""
+        moved = copy.copy(self)
+        moved.hole_offset_mm = _checked_offsets(self.scene, hole_offset_mm)
+        moved._pairs = {}  # the torch path's pair tables depend on the offsets
+        return moved
 
     def nominal_states(self, position: int = 0) -> EyeStates:
         """The eye state at eyebox position `position` of the scene, nominal pupil and focus."""

@@ -21,10 +21,11 @@ from tqdm import tqdm
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.fabrication.quantize import MadeSizes
 from aperture_fab.metrics import psnr_db
+from aperture_fab.optics.as_made import MadeDraw, MadeOptics, draw_errors, made_views
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
-from aperture_fab.optics.model import Renderer, render_open_states
+from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
 from aperture_fab.optimize.budget import check_budget
 
@@ -40,6 +41,7 @@ __all__ = [
     "optimize",
     "initial_design",
     "fit_display",
+    "made_draw",
 ]
 
 #: The cosine schedule decays the learning rate to this share of its start.
@@ -50,8 +52,6 @@ INIT_CLOSED_SHARE = 0.02
 FROZEN_PLATE_START = 0.5
 #: MLEM iterations per eye state and design iteration of a tracked design (see _tracked_loss).
 TRACKED_SOLVE_ITERATIONS = 2
-#: Pupil samples for the open-display level inside the efficiency term (a mean, not a picture).
-EFFICIENCY_PUPIL_SAMPLES = 32
 #: Weight of the brightness floor's penalty (1 - efficiency / floor)^2: a state 10 % below the
 #: floor costs 0.01, more than a typical image loss (MSE 1e-3), so the floor holds to a few %.
 FLOOR_WEIGHT = 1.0
@@ -67,8 +67,10 @@ class MaskDesign:
     bounds: (a_min, a_max), the open-area fractions the optimizer was allowed.
     stopped: why it stopped: "completed" or "plateau".
     continuous: when the last iterations saw the plate snapped to makeable holes, the design
-        (open_fraction, displays) just before: the unconstrained optimum. `open_fraction` is
-        then makeable as it is (every value one of MadeSizes). None otherwise.
+        (open_fraction, displays) just before: the unconstrained optimum. None otherwise, and
+        when every iteration saw the snapped plate (there is no unconstrained design).
+    snapped: whether iterations saw the plate snapped to makeable holes: `open_fraction` is
+        then makeable as it is (every value one of MadeSizes) and `displays` fitted to it.
     """
 
     open_fraction: np.ndarray
@@ -77,6 +79,7 @@ class MaskDesign:
     bounds: tuple[float, float]
     stopped: str
     continuous: tuple[np.ndarray, np.ndarray] | None = None
+    snapped: bool = False
 
 
 class Interrupted(Exception):
@@ -196,18 +199,27 @@ def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: floa
 
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                  targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
-                 tail_share: float = 1.0, min_efficiency: float = 0.0) -> torch.Tensor:
+                 tail_share: float = 1.0, min_efficiency: float = 0.0,
+                 optics: MadeOptics | None = None, draw: MadeDraw | None = None
+                 ) -> torch.Tensor:
     """The design loss: gain-corrected MSE, averaged over targets, per eye state, plus
     efficiency_weight x (1 - light efficiency) and, below a brightness floor min_efficiency,
-    FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`."""
+    FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`.
+    optics: view the plate as made (`aperture_fab.optics.as_made`: diffraction, the leakage
+    veil, and the errors of one made copy `draw`); None: the geometric view of the holes."""
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
-        views = renderer.render_states(a, renderer.display_stack(displays[t]), states)
+        if optics is None:
+            views = through = renderer.render_states(a, renderer.display_stack(displays[t]),
+                                                     states)
+        else:
+            views, through = made_views(renderer, a, displays[t], states, optics, draw)
         per_state = per_state + gain_mse_states(views, targets[t])
         if efficiency_weight > 0 or min_efficiency > 0:
-            opens = render_open_states(renderer.scene, displays[t], states,
-                                       pupil_samples=EFFICIENCY_PUPIL_SAMPLES, subpixels=1)
-            efficiency = views.mean((1, 2, 3)) / (opens.mean((1, 2, 3)) + 1e-12)
+            # The open display's view of the content is the content over the field, so its
+            # mean is the display's mean (the field spans the display from the eyebox; the
+            # content at the display's edge, which some states do not see, is the difference).
+            efficiency = through.mean((1, 2, 3)) / (displays[t].mean() + 1e-12)
             per_state = per_state + efficiency_weight * (1 - efficiency)
             if min_efficiency > 0:
                 short = torch.clamp(1 - efficiency / min_efficiency, min=0)
@@ -240,6 +252,20 @@ def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     tracked = combine_states(per_state / targets.shape[0], weights, tail_share)
     warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share)
     return tracked + (warm - warm.detach())
+
+
+#: Stream of the made copies' random errors, apart from the eye states' (iteration_seed).
+MADE_STREAM = 1
+
+
+def made_draw(scene: Scene, settings: OptimizerSettings, optics: MadeOptics | None,
+              iteration: int) -> MadeDraw | None:
+    """The made copy iteration `iteration` sees (None without process errors): deterministic in
+    (seed, iteration), so a resumed run draws the same copies."""
+    if optics is None or not optics.has_errors:
+        return None
+    rng = np.random.default_rng((iteration_seed(settings.seed, iteration), MADE_STREAM))
+    return draw_errors((scene.plate.cells[1], scene.plate.cells[0]), optics, rng)
 
 
 def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
@@ -277,6 +303,7 @@ def optimize(
     *,
     bounds: tuple[float, float] | None = None,
     made: MadeSizes | None = None,
+    optics: MadeOptics | None = None,
     state: dict[str, Any] | None = None,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = True,
@@ -288,6 +315,9 @@ def optimize(
     bounds: allowed open-area fractions (a_min, a_max); default (0, the largest hole a cell takes).
     made: the fractions a process makes; the last settings.quantize_share of the iterations
         (or all after a plateau) see the plate snapped to them, so the result is makeable.
+    optics: the part as made (`aperture_fab.optics.as_made`): the loss sees diffraction and
+        the leakage veil, and each iteration that sees the snapped plate draws one made copy's
+        errors (seeded by the settings' seed and the iteration: a resume draws the same).
     state: a checkpoint from `on_checkpoint` or `Interrupted.state`, to resume.
     """
     device = resolve_device(settings.device)
@@ -333,9 +363,11 @@ def optimize(
             return _tracked_loss(renderer, plate(iteration), display_param, target_t, states,
                                  settings.tail_share)
         displays = shown_t if display_param is None else display_param
+        snapped = made is not None and iteration >= state["snap_from"]
+        draw = made_draw(scene, settings, optics, iteration) if snapped else None
         return _design_loss(renderer, plate(iteration), displays, target_t, states,
                             settings.efficiency_weight, settings.tail_share,
-                            settings.min_efficiency)
+                            settings.min_efficiency, optics, draw)
 
     def keep_continuous() -> None:
         with torch.no_grad():
@@ -371,7 +403,7 @@ def optimize(
             for group in opt.param_groups:
                 group["lr"] = _lr_at(settings, iteration,
                                      None if made is None else state["snap_from"])
-            if made is not None and iteration == state["snap_from"]:
+            if made is not None and iteration == state["snap_from"] > 0:
                 keep_continuous()
                 state["best"] = math.inf  # the snapped loss starts a new curve
             opt.zero_grad(set_to_none=True)
@@ -414,8 +446,11 @@ def optimize(
         a = (lo + (hi - lo) * torch.sigmoid(mask_logits)).cpu().double().numpy()
         displays = (shown_t if display_param is None else display_param).cpu().double().numpy()
     continuous = None
-    if made is not None and state["continuous"] is not None:
+    snapped = made is not None and state["snap_from"] < len(state["history"])
+    if snapped:
+        assert made is not None
         a = made.snap(a)
+    if snapped and state["continuous"] is not None:
         kept_a, kept_display = state["continuous"]
         continuous = (kept_a.double().numpy(),
                       displays if kept_display is None else kept_display.double().numpy())
@@ -426,6 +461,7 @@ def optimize(
         bounds=(lo, hi),
         stopped=stopped,
         continuous=continuous,
+        snapped=snapped,
     )
 
 
@@ -437,11 +473,13 @@ def fit_display(
     settings: OptimizerSettings,
     iterations: int,
     *,
+    optics: MadeOptics | None = None,
     progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Re-fit the display content (T, C, H, W) to a fixed plate, e.g. the part as built, from
     `displays`; the plate is hardware, the display content software. Returns the displays and
-    the loss history. Adam with the settings' learning rate and schedule, the same loss."""
+    the loss history. Adam with the settings' learning rate and schedule, the same loss (with
+    `optics`: the plate as made, one made copy drawn per iteration as in `optimize`)."""
     device = resolve_device(settings.device)
     dtype = torch_dtype(settings.precision)
     renderer = Renderer(scene, device=device, dtype=dtype)
@@ -457,7 +495,8 @@ def fit_display(
             group["lr"] = _lr_at(schedule, iteration)
         opt.zero_grad(set_to_none=True)
         loss = _design_loss(renderer, a, shown, target_t,
-                            training_states(scene, settings, iteration), 0.0, settings.tail_share)
+                            training_states(scene, settings, iteration), 0.0, settings.tail_share,
+                            optics=optics, draw=made_draw(scene, settings, optics, iteration))
         value = float(loss.detach())
         if not math.isfinite(value):
             raise DivergedError(f"the display fit's loss became {value} at iteration "

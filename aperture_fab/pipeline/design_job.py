@@ -21,7 +21,14 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import Config, parse_toml, resolve, to_dict, to_toml
-from aperture_fab.fabrication.part import FabricationSettings, Part, design_bounds, make_part
+from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.fabrication.part import (
+    FabricationSettings,
+    Part,
+    design_bounds,
+    made_optics,
+    make_part,
+)
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
@@ -30,10 +37,12 @@ from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png, prepare_targets, resample
 from aperture_fab.io.manifest import publish, staging
 from aperture_fab.metrics import gain, psnr_db
+from aperture_fab.optics.as_made import white_transmission
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optics.photometry import photometry_settings
+from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import (
     Interrupted,
     MaskDesign,
@@ -41,6 +50,7 @@ from aperture_fab.optimize.optimizer import (
     gain_mse,
     initial_design,
     optimize,
+    training_states,
 )
 from aperture_fab.validation.validate import (
     Validation,
@@ -49,7 +59,8 @@ from aperture_fab.validation.validate import (
     validate,
 )
 
-__all__ = ["DesignResult", "design", "input_digests", "recorded_config", "run_design"]
+__all__ = ["DesignResult", "check_light_floor", "design", "input_digests", "recorded_config",
+           "run_design"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 #: The display is re-fitted to the part as built for this share of the design's iterations.
@@ -113,19 +124,21 @@ def design(
     photometry_settings(config.extra)  # a bad [photometry] table is refused before the work
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
-    bounds = made = None
+    bounds = made = optics = None
     if fabrication is not None:
         if not fabrication.force:
             check_plate(fabrication.process, scene.plate)  # refuse before optimizing
             if settings.quantize_share > 0:
                 made = made_sizes(scene.plate, fabrication.process, scene.mid_plane_distance_mm)
+                optics = made_optics(scene, fabrication.process)
         bounds = design_bounds(scene, fabrication.process)
+    check_light_floor(scene, settings, bounds, fabrication)
     targets, shown = prepare_targets(list(images), scene.eye.view_pixels, scene.display.pixels,
                                      names=names)
     timings = {}
     start = time.perf_counter()
-    result = optimize(scene, targets, shown, settings, bounds=bounds, made=made, state=state,
-                      on_checkpoint=on_checkpoint, progress=progress)
+    result = optimize(scene, targets, shown, settings, bounds=bounds, made=made, optics=optics,
+                      state=state, on_checkpoint=on_checkpoint, progress=progress)
     timings["optimize_s"] = time.perf_counter() - start
     start = time.perf_counter()
     views, metrics = evaluate(config, targets, {
@@ -137,7 +150,7 @@ def design(
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
     timings["quantize_build_s"] = time.perf_counter() - start
     built = None
-    if part is not None and settings.display == "optimized" and result.continuous is not None:
+    if part is not None and settings.display == "optimized" and result.snapped:
         built = result.displays  # optimized for the holes as made
     elif part is not None and settings.display == "optimized" and settings.iterations > 1:
         # The plate is hardware and the display software: fit the display to the part as it
@@ -147,9 +160,34 @@ def design(
                                     if fabrication is not None else 0.0)
         built, _ = fit_display(scene, targets, as_built, result.displays, settings,
                                max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE),
-                               progress=progress)
+                               optics=optics, progress=progress)
         timings["fit_display_s"] = time.perf_counter() - start
     return DesignResult(config, result, names, targets, views, metrics, part, built, timings)
+
+
+def check_light_floor(scene: Scene, settings: OptimizerSettings,
+                      bounds: tuple[float, float] | None,
+                      fabrication: FabricationSettings | None) -> None:
+    """Refuse, before the work, a brightness floor (optimizer.min_efficiency) that no plate of
+    this scene and process reaches: the brightest, every cell at its largest hole, passes less
+    light (its white efficiency over the eye states of one iteration)."""
+    floor = settings.min_efficiency
+    if floor <= 0:
+        return
+    top = scene.plate.max_open_fraction if bounds is None else bounds[1]
+    cells = (scene.plate.cells[1], scene.plate.cells[0])
+    renderer = Renderer(scene, dtype=torch.float64)
+    reach = float(white_transmission(renderer, torch.full(cells, top, dtype=torch.float64),
+                                     training_states(scene, settings, 0)).mean())
+    if floor > reach:
+        process = "" if fabrication is None else f" with process {fabrication.process.name!r}"
+        raise ValueError(
+            f"optimizer.min_efficiency = {floor:g} ({floor:.2%} of the open display's light) "
+            f"cannot be met: the brightest plate{process}, every "
+            f"{scene.plate.pitch_mm[0]:g} mm cell at its largest hole in a "
+            f"{scene.plate.thickness_mm:g} mm plate, passes {reach:.2%}. Lower the floor to "
+            f"{reach:.3g} or less, or give more light room: a thinner plate, a process with "
+            "thinner webs (`aperture-fab processes`), or chief-ray hole axes.")
 
 
 def optimum(design: MaskDesign) -> tuple[np.ndarray, np.ndarray]:

@@ -31,7 +31,11 @@ from aperture_fab.validation.figures import (
     figure_views,
 )
 from aperture_fab.validation.light import content_level, photometry_block
-from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
+from aperture_fab.validation.part_figures import (
+    figure_errors,
+    figure_hole_map,
+    figure_made_front,
+)
 from aperture_fab.validation.report import (
     EYE_VARIANT_LABELS,
     EYE_VARIANTS,
@@ -153,7 +157,8 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
                               eyes, names, targets),
                           run=run_block(part_file, process.name, command, date),
                           photometry=light_block(config, validation, displays, process,
-                                                 float(stats["open_area_fraction"])))
+                                                 float(stats["open_area_fraction"])),
+                          made_part=validation.made_part)
     if validation.mesh_stderr is not None:
         report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
 
@@ -172,6 +177,8 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
         "hole_map": figure_hole_map(layout.centres_mm, layout.radii_mm,
                                     outline_points_mm(layout, part.corner_cut_mm)),
         "loss": figure_loss(loss_history),
+        **({} if validation.made_part is None else
+           {"made_front": figure_made_front(validation.made_part)}),
     }
     if views["as_built"].shape[1] > 1:
         positions = views["as_built"][0]

@@ -1,4 +1,5 @@
-"""The report's figures of the part and its errors: the plate to scale, and error maps.
+"""The report's figures of the part and its errors: the plate to scale, error maps, and the
+part as made against the regular pinhole family.
 
 Pure functions, values in and PNG bytes out (aperture_fab.validation.figures draws the others);
 matplotlib's object-oriented API only.
@@ -7,7 +8,8 @@ matplotlib's object-oriented API only.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +23,7 @@ from aperture_fab.validation.figures import (
     wrap_to_width,
 )
 
-__all__ = ["figure_errors", "figure_hole_map"]
+__all__ = ["figure_errors", "figure_hole_map", "figure_made_front"]
 
 UM_PER_MM = 1000.0
 #: The hole map's plate drawing, inches on its longer side.
@@ -123,4 +125,36 @@ def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
         ax.set_axis_off()
         axes.append(ax)
     fig.colorbar(shown, ax=axes, label="|gain x view - target| (linear)", shrink=0.8)
+    return _png(fig)
+
+
+def figure_made_front(block: Mapping[str, Any], title: str = "The part as made and the regular "
+                      "pinhole family") -> bytes:
+    """PNG of p10 PSNR against light efficiency (log) from a "made_part" block
+    (`aperture_fab.validation.made_part.made_part_block`): every regular array with elemental
+    images (colour: pitch), the front they make, the rivals with their display fitted, and the
+    part as made."""
+    family, fitted = block["regular"]["family"], block["regular"]["fitted"]
+    part = block["part"]
+    fig = _figure(6.4, 4.0)
+    ax = fig.add_subplot()
+    eff = np.asarray(family["efficiency"]) * 100
+    p10 = np.asarray(family["p10_db"])
+    points = ax.scatter(eff, p10, s=12, c=family["pitch_mm"], cmap="viridis",
+                        label="regular arrays, elemental images")
+    fig.colorbar(points, ax=ax, label="regular pitch (mm)")
+    levels = np.sort(eff)
+    ax.step(levels, [p10[eff >= e].max() for e in levels], where="post", color="k", lw=0.8,
+            ls="--", label="their front (best at least this bright)")
+    if fitted["efficiency"]:
+        ax.scatter(np.asarray(fitted["efficiency"]) * 100, fitted["p10_db"], marker="s", s=36,
+                   facecolors="none", edgecolors="k", label="rivals, display fitted")
+    ax.scatter([100 * part["efficiency"]], [float(np.mean(part["p10_db"]))], marker="*", s=220,
+               c="C3", zorder=3, label="the part as made")
+    ax.set_xscale("log")
+    ax.set_xlabel("light efficiency, white display (% of the open display)")
+    ax.set_ylabel(f"p10 PSNR, {block['copies']} copies x {block['states']} states (dB)")
+    ax.set_title(wrap_to_width(title, 5.2, TITLE_FONT_SIZE), fontsize=TITLE_FONT_SIZE)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
     return _png(fig)

@@ -15,6 +15,13 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
                     (aperture_fab.validation.robustness), or null when not judged
                     (validation.eye_states
                     = 0); see EYE_DISTRIBUTION below
+    made_part       (optional) the part as made (process errors drawn per made copy, diffraction,
+                    the material's veil) over made copies x eye states beside the best regular
+                    array at least as bright: {"copies", "states", "neglected", "part":
+                    {"efficiency", "p10_db", "p50_db", "p90_db" (per target)}, "regular":
+                    {"family", "fitted": per array lists, "best": {"pitch_mm", "diameter_mm",
+                    "efficiency", "p10_db", ...} or null}, "margin_db": per target or null}
+                    (aperture_fab.validation.made_part.made_part_block), or null
     verdicts        [{"topic", "level" (one of LEVELS), "text"}], most important first; the first
                     is topic EYE_TOPIC (aperture_fab.validation.verdicts.verdicts); may be empty
     metrics         {variant: {"per_target": {name: METRICS}, "mean": METRICS}}, variants from
@@ -138,6 +145,12 @@ FIGURE_KEYS: dict[str, str] = {
     "hole_map": "The plate to scale as seen from the eye: each hole a circle of its made "
                 "diameter (colour), the outline with its alignment chamfer, mm from the axis.",
     "loss": "Optimization loss per iteration.",
+    "made_front": "The part as made (star) and the regular pinhole arrays the same process "
+                  "makes, judged the same way (made copies x eye states, diffraction, the "
+                  "material's veil): 10th-percentile PSNR against light efficiency for a white "
+                  "display. Dots: every array with elemental images (colour: pitch); dashed: "
+                  "their front; squares: the rivals at the part's light with the display fitted "
+                  "like the part's.",
     "eyebox": "The as-built view at each eye position across the eyebox.",
     "tolerance": "PSNR over manufacturing-tolerance samples; the line marks the threshold.",
 }
@@ -187,6 +200,10 @@ _EYE_DISTRIBUTION_SPEC: dict[str, Kind] = {
     "thumbnails": "dict",
 }
 _VERDICT_SPEC: dict[str, Kind] = {"topic": "str", "level": "str", "text": "str"}
+_MADE_PART_SPEC: dict[str, Kind] = {"copies": "int", "states": "int", "neglected": "list",
+                                    "part": "dict", "regular": "dict"}
+_MADE_FIGURES_SPEC: dict[str, Kind] = {"efficiency": "number", "p10_db": "list",
+                                       "p50_db": "list", "p90_db": "list"}
 _RUN_SPEC: dict[str, Kind] = {"part": "str", "process": "str", "date": "str",
                               "command": "str or null"}
 _PHOTOMETRY_SPEC: dict[str, Kind] = {
@@ -271,6 +288,8 @@ def validate_report(report: Mapping[str, Any]) -> None:
         _check_photometry(report["photometry"])
     if _get(report, "eye_distribution", "") is not None:
         _check_eye_distribution(report["eye_distribution"])
+    if report.get("made_part") is not None:
+        _check_made_part(report["made_part"])
     for i, verdict in enumerate(report["verdicts"]):
         _check(verdict, _VERDICT_SPEC, f"verdicts[{i}]")
         if verdict["level"] not in LEVELS:
@@ -310,6 +329,17 @@ def validate_report(report: Mapping[str, Any]) -> None:
         if not _is_pair(position, _is_number):
             raise TypeError(f"report scene.eye.positions_mm[{i}] = {position!r} must be [x, y].")
     _check(report["versions"], dict.fromkeys(report["versions"], "str"), "versions")
+
+
+def _check_made_part(block: Any) -> None:
+    _check(block, _MADE_PART_SPEC, "made_part")
+    _check(block["part"], _MADE_FIGURES_SPEC, "made_part.part")
+    count = len(block["part"]["p10_db"])
+    best = block["regular"].get("best")
+    if best is not None:
+        _check(best, {"pitch_mm": "number", "diameter_mm": "number", **_MADE_FIGURES_SPEC},
+               "made_part.regular.best")
+        _check_per_target(block.get("margin_db"), count, "made_part.margin_db", "number")
 
 
 def _check_photometry(block: Any) -> None:
@@ -458,6 +488,7 @@ def build_report(
     verdicts: Sequence[Verdict | Mapping[str, str]] = (),
     run: Mapping[str, Any] | None = None,
     photometry: Mapping[str, Any] | None = None,
+    made_part: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The report.json structure, checked (see the module docstring).
 
@@ -467,6 +498,7 @@ def build_report(
         aperture_fab.validation.verdicts.verdicts reads the report.
     run: the RUN block (part file, process, date, command), or None to leave it out.
     photometry: the PHOTOMETRY block (aperture_fab.validation.light.photometry_block), or None.
+    made_part: the MADE_PART block (aperture_fab.validation.made_part.made_part_block), or None.
 
     metrics: {variant: {target name: metrics dict (aperture_fab.metrics.metrics)}}; each
         variant's mean over targets is added, and variants are listed in REPORT_VARIANTS order.
@@ -488,6 +520,7 @@ def build_report(
         "schema_version": SCHEMA_VERSION,
         **({} if run is None else {"run": run}),
         "eye_distribution": eye_distribution,
+        **({} if made_part is None else {"made_part": made_part}),
         "verdicts": [v.as_dict() if isinstance(v, Verdict) else v for v in verdicts],
         "photometry": photometry,
         "metrics": blocks,

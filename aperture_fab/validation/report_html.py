@@ -53,6 +53,7 @@ __all__ = ["CSP", "EYE_MARGIN_DB", "LEVEL_WORDS", "NOT_JUDGED", "SECTION_TITLES"
 #: The page's sections, top to bottom: (id, heading).
 SECTION_TITLES: tuple[tuple[str, str], ...] = (
     ("verdict", "Verdict"),
+    ("made", "The part as made"),
     ("light", "Light and contrast"),
     ("eyes", "Over the eye distribution"),
     ("views", "What the eye sees"),
@@ -218,6 +219,36 @@ def _eyes_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
     ])
 
 
+def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> str:
+    """The part as made beside the best regular array at its light: a table and the front."""
+    if block is None:
+        return (f'<p class="muted">The part as made {NOT_COMPUTED} (validation.made_copies = 0, '
+                "or a part forced past its process's rules).</p>")
+    part, best = block["part"], block["regular"]["best"]
+    rows = [("the part as made", part["p10_db"], part["p50_db"], part["p90_db"],
+             part["efficiency"])]
+    if best is not None:
+        rows.append((f"best regular array at least as bright: {best['pitch_mm']:g} mm pitch, "
+                     f"{1000 * best['diameter_mm']:.0f} um holes, display fitted",
+                     best["p10_db"], best["p50_db"], best["p90_db"], best["efficiency"]))
+    cells = "".join(
+        f"<tr><td>{e(name)}</td>" + "".join(
+            f'<td class="n">{" / ".join(f"{v:.1f}" for v in values)}</td>'
+            for values in (p10, p50, p90))
+        + f'<td class="n">{100 * light:.3g} %</td></tr>'
+        for name, p10, p50, p90, light in rows)
+    margin = block.get("margin_db")
+    note = ("" if margin is None else
+            f"<p>Margin at equal or more light: <b>{' / '.join(f'{m:+.1f}' for m in margin)} "
+            "dB</b> (per target).</p>")
+    return (f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "
+            f"position errors drawn afresh for each) x {block['states']} eye states, with "
+            "diffraction at the holes and the veil the plate's material leaks; light for a white "
+            "display. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
+            "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
+            f"<th>light</th></tr>{cells}</table>{note}" + _img(figures, "made_front"))
+
+
 def _header(report: Mapping[str, Any], targets: Sequence[str]) -> str:
     """The part, its process, the date and the command that made the report."""
     run = report.get("run")
@@ -265,6 +296,7 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
     tolerance = report["tolerance"]
     body: dict[str, str] = {
         "verdict": _verdict_section(lines) if lines else f'<p class="muted">{NOT_COMPUTED}.</p>',
+        "made": made_html(report.get("made_part"), figures),
         "light": light_html(report.get("photometry")),
         "eyes": _eyes_html(report, figures, lead),
         "views": _img(figures, "views"),

@@ -57,7 +57,7 @@ from aperture_fab.config.config import Config
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.part import Part
-from aperture_fab.fabrication.process import Process
+from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.metrics import psnr_db
@@ -66,6 +66,7 @@ from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
 from aperture_fab.optimize.optimizer import gain_mse
+from aperture_fab.validation.made_part import MADE_COPIES, made_part_block
 from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
 
@@ -99,6 +100,8 @@ class ValidationSettings:
     seed: random seed (random mask, tolerance samples, ray sampling).
     eye_states: states of the evaluation set over the eye distribution (`robustness`); 0 skips
         the judgement over the distribution.
+    made_copies: made copies (draws of the process's errors) the part as made is judged over,
+        beside the best regular array (`aperture_fab.validation.made_part`); 0 skips it.
     """
 
     tolerance_samples: int = 16
@@ -110,9 +113,10 @@ class ValidationSettings:
     diffraction: bool = True
     seed: int = 0
     eye_states: int = EVALUATION_STATES
+    made_copies: int = MADE_COPIES
 
     def __post_init__(self) -> None:
-        for name in ("tolerance_samples", "mesh_samples", "seed", "eye_states"):
+        for name in ("tolerance_samples", "mesh_samples", "seed", "eye_states", "made_copies"):
             value = getattr(self, name)
             if name == "mesh_samples" and value is None:
                 continue
@@ -152,6 +156,8 @@ class Validation:
     tolerance: {"samples", "psnr_db": [...], "psnr_percentiles", "threshold_db", "yield"} or None.
     timings_s: seconds per part of the validation.
     eyes: the part (as_built) and the baselines judged over the eye distribution, or None.
+    made_part: report.json's "made_part" block (`made_part.made_part_block`): the part as made
+        over made copies x eye states beside the best regular array, or None.
     """
 
     views: dict[str, np.ndarray]
@@ -160,6 +166,7 @@ class Validation:
     tolerance: dict[str, Any] | None
     timings_s: dict[str, float]
     eyes: EyeQuality | None = None
+    made_part: dict[str, Any] | None = None
 
 
 def layout_fractions(layout: HoleLayout, bias_mm: float = 0.0) -> np.ndarray:
@@ -276,6 +283,18 @@ def validate(
                 for t in target_views])),
         }, device=device, dtype=dtype, count=settings.eye_states)
         timings["eye_distribution_s"] = time.perf_counter() - start
+    made_part = None
+    if settings.eye_states > 0 and settings.made_copies > 0:
+        start = time.perf_counter()
+        try:
+            made_part = made_part_block(
+                scene, config.optimizer, targets, as_built,
+                np.stack([d.cpu().double().numpy() for d in shown]), process,
+                states=settings.eye_states, copies=settings.made_copies, seed=settings.seed,
+                device=device, dtype=dtype)
+        except UnmakeableError:
+            made_part = None  # a forced part: the process makes no regular family to compare
+        timings["made_part_s"] = time.perf_counter() - start
     tolerance = None
     if settings.tolerance_samples > 0:
         start = time.perf_counter()
@@ -284,7 +303,7 @@ def validate(
                                        nominal - YIELD_MARGIN_DB if settings.threshold_db is None
                                        else settings.threshold_db, device, dtype)
         timings["tolerance_s"] = time.perf_counter() - start
-    return Validation(views, metrics, mesh_stderr, tolerance, timings, eyes)
+    return Validation(views, metrics, mesh_stderr, tolerance, timings, eyes, made_part)
 
 
 def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,

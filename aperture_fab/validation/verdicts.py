@@ -14,8 +14,9 @@ from aperture_fab.validation.light import contrast_verdict, light_verdict
 from aperture_fab.validation.report import EYE_TOPIC, Verdict
 from aperture_fab.validation.variants import EYE_BASELINES
 
-__all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "NOT_JUDGED", "YIELD_PASS", "YIELD_WARN",
-           "describe_distribution", "eye_verdict", "tolerance_verdict", "verdicts"]
+__all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
+           "YIELD_PASS", "YIELD_WARN", "describe_distribution", "eye_verdict", "made_verdict",
+           "tolerance_verdict", "verdicts"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
 HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
@@ -29,6 +30,10 @@ LEVEL_WORDS = {"fail": "FAIL", "warn": "WARN", "pass": "PASS", "info": "NOTE"}
 #: Tolerance yield: at least YIELD_PASS passes, at least YIELD_WARN warns, less fails.
 YIELD_PASS = 0.9
 YIELD_WARN = 0.5
+#: The made part's 10th percentile this far above the best regular array at its light passes
+#: (issue 22's goal); above it by less warns; below it fails.
+MADE_MARGIN_DB = 4.0
+MADE_TOPIC = "made part"
 NOT_JUDGED = ("Not judged over the eye distribution (validation.eye_states = 0): every figure "
               "below is for the nominal eye point only, which can look far better than what a "
               "moving eye sees. Set [validation] eye_states (default 32) to judge the part over "
@@ -163,10 +168,39 @@ def tolerance_verdict(tolerance: Mapping[str, Any]) -> Verdict:
                    "parts will not look like this report's nominal figures." + fix)
 
 
+def made_verdict(block: Mapping[str, Any]) -> Verdict:
+    """The part as made (process errors, diffraction, the material's veil) over made copies x
+    eye states against the best regular array the process makes at least as bright."""
+    part, best = block["part"], block["regular"]["best"]
+    p10 = min(part["p10_db"])
+    where = (f"As made ({block['copies']} made copies x {block['states']} eye states, "
+             f"diffraction and the material's veil included), the part's 10th percentile is "
+             f"{p10:.1f} dB at {100 * part['efficiency']:.2g} % light")
+    if best is None:
+        return Verdict(MADE_TOPIC, "info", where + "; no regular array the process makes is "
+                       "that bright, so none is compared.")
+    margin = min(block["margin_db"])
+    rival = (f"the best regular array at least as bright ({best['pitch_mm']:g} mm pitch, "
+             f"{1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g} % "
+             f"light, display fitted) reaches {min(best['p10_db']):.1f} dB")
+    fix = (" Fix: design with the default preset's process (photomask film) and light floor, "
+           "more iterations, or a plate whose process makes finer holes.")
+    if margin >= MADE_MARGIN_DB:
+        return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
+                       f"{MADE_MARGIN_DB:g} dB better.")
+    if margin >= 0:
+        return Verdict(MADE_TOPIC, "warn", f"{where}; {rival}: only {margin:+.1f} dB, less "
+                       f"than {MADE_MARGIN_DB:g} dB better: the coded plate buys little over "
+                       "a plain pinhole array." + fix)
+    return Verdict(MADE_TOPIC, "fail", f"{where}; {rival}: {margin:+.1f} dB. A plain regular "
+                   "pinhole array would look better: do not make this part." + fix)
+
+
 def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None,
              diffraction_hole_mm: float | None = None) -> list[Verdict]:
     """Findings in plain language, most important first: the part over the eye distribution
-    (`eye_verdict`), the tolerance yield, then the nominal eye point's figures, fabrication and
+    (`eye_verdict`), the part as made against the best regular array (`made_verdict`), the
+    tolerance yield, then the nominal eye point's figures, fabrication and
     mesh.
 
     diffraction_blur_px: diffraction blur of the holes named by diffraction_hole_mm, in view
@@ -174,6 +208,8 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
     diffraction_hole_mm: the hole diameter that blur is for; None takes the smallest hole.
     """
     lines: list[Verdict] = [eye_verdict(report)]
+    if report.get("made_part") is not None:
+        lines.append(made_verdict(report["made_part"]))
 
     def say(topic: str, text: str, level: str = "info") -> None:
         lines.append(Verdict(topic, level, text))

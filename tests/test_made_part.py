@@ -1,0 +1,193 @@
+"""The part as made and the regular family (aperture_fab.validation.made_part): the front's
+logic against brute force, the known best regular array (the smallest hole without diffraction,
+near sqrt(2.44 lambda h) with it), the as-made model against the written part, the verdict, and a
+light floor that no plate reaches refused before the work."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import tiny_config
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from aperture_fab.config.config import resolve
+from aperture_fab.fabrication.part import FabricationSettings, made_optics
+from aperture_fab.fabrication.process import resolve_process
+from aperture_fab.fabrication.quantize import made_sizes
+from aperture_fab.io.formats import holes_csv, read_holes_csv
+from aperture_fab.io.images import prepare_targets
+from aperture_fab.optics.as_made import MadeOptics
+from aperture_fab.optics.eyes import distribution_of
+from aperture_fab.optics.model import Renderer
+from aperture_fab.pipeline.design_job import design
+from aperture_fab.targets import EXAMPLES, digit
+from aperture_fab.validation.made_part import (
+    RegularFront,
+    judge_made,
+    regular_arrays,
+    regular_front,
+    rivals_at,
+)
+from aperture_fab.validation.validate import layout_fractions
+from aperture_fab.validation.verdicts import MADE_MARGIN_DB, made_verdict
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+#: Green, for the diffraction-limited pinhole: d* = sqrt(2.44 lambda h) balances the geometric
+#: blur d / h against the Airy core's 2.44 lambda / d.
+GREEN_MM = 530e-6
+
+
+# -- the front ----------------------------------------------------------------------------------
+
+fronts = st.integers(1, 12).flatmap(lambda n: st.tuples(
+    st.lists(st.floats(1e-4, 0.5), min_size=n, max_size=n),
+    st.lists(st.floats(5.0, 30.0), min_size=n, max_size=n),
+    st.lists(st.sampled_from([0.5, 1.0, 1.5]), min_size=n, max_size=n),
+    st.floats(1e-4, 0.6)))
+
+
+def make_front(eff: list[float], p10: list[float], pitch: list[float]) -> RegularFront:
+    p = np.array(p10)[:, None]
+    return RegularFront(np.array(pitch), np.array(eff) * 0.5 + 0.01, np.array(eff), p, p + 1,
+                        p + 2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(fronts)
+def test_best_at_is_the_brute_force_best_at_least_as_bright(case):
+    eff, p10, pitch, light = case
+    front = make_front(eff, p10, pitch)
+    bright = [i for i, e in enumerate(eff) if e >= light * (1 - 1e-9)]
+    best = front.best_at(light)
+    if not bright:
+        assert best is None
+        return
+    assert best is not None and best in bright
+    assert p10[best] == max(p10[i] for i in bright)
+    levels, staircase = front.front()
+    for e, value in zip(levels, staircase, strict=True):
+        assert value == max(p10[i] for i, x in enumerate(eff) if x >= e)
+
+
+@settings(max_examples=40, deadline=None)
+@given(fronts)
+def test_rivals_are_the_smallest_bright_holes_per_pitch(case):
+    eff, p10, pitch, light = case
+    front = make_front(eff, p10, pitch)
+    rivals = rivals_at(front, light, per_pitch=1)
+    for p in set(pitch):
+        bright = [i for i in range(len(eff)) if pitch[i] == p and eff[i] >= light * (1 - 1e-9)]
+        chosen = [i for i in rivals if pitch[i] == p]
+        if not bright:
+            assert not chosen
+            continue
+        assert len(chosen) == 1
+        assert front.diameter_mm[chosen[0]] == min(front.diameter_mm[i] for i in bright)
+
+
+# -- the known best regular array ---------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def one_pitch():  # type: ignore[no-untyped-def]
+    """Regular arrays of one 1 mm pitch and 8 made sizes (photomask: 25 to 234 um) on a thin
+    plate 10 mm over the display, a line-pair target, the nominal eye."""
+    config = resolve("near-eye-nominal", overrides={
+        "plate.thickness_mm": 0.005, "eye.view_pixels": [96, 96], "display.pixels": [300, 300]})
+    scene = config.scene
+    process = resolve_process("photomask")
+    targets, _ = prepare_targets([EXAMPLES["line-pairs"]()], scene.eye.view_pixels,
+                                 scene.display.pixels)
+    arrays = [a for a in regular_arrays(scene, made_sizes(scene.plate, process,
+                                                          scene.mid_plane_distance_mm), count=8)
+              if math.isclose(a.pitch_mm, 1.0)]
+    renderer = Renderer(scene, dtype=torch.float64)
+    return scene, process, targets, arrays, renderer
+
+
+def test_without_diffraction_the_smallest_hole_is_best(one_pitch):
+    """Geometric optics: a smaller hole is a sharper pinhole, so sharpness falls with size and
+    the best array at least as bright as e is the smallest hole that bright."""
+    _, _, targets, arrays, renderer = one_pitch
+    front = regular_front(renderer, targets, arrays, MadeOptics(), renderer.nominal_states())
+    assert np.all(np.diff(front.p10[:, 0]) < 0)
+    for k, light in enumerate(front.efficiency):
+        assert front.best_at(float(light)) == k
+    # and the light of a thin regular array is about its open area, (pi d^2 / 4) / pitch^2,
+    # less at the view's edge, where part of the pupil's footprint leaves the 20 mm plate
+    ratio = front.efficiency / (np.pi * front.diameter_mm**2 / 4)
+    assert np.all((ratio > 0.85) & (ratio <= 1.0 + 1e-6))
+    np.testing.assert_allclose(ratio, ratio[0], rtol=0.04)
+
+
+def test_with_diffraction_the_best_hole_is_the_diffraction_limited_one(one_pitch):
+    scene, process, targets, arrays, renderer = one_pitch
+    optics = dataclasses.replace(made_optics(scene, process), radius_sigma_mm=0.0,
+                                 position_sigma_mm=0.0, solid_transmission=0.0)
+    front = regular_front(renderer, targets, arrays, optics, renderer.nominal_states())
+    best = front.best_at(0.0)
+    assert best is not None and 0 < best < len(arrays) - 1  # inside the ladder
+    optimum = math.sqrt(2.44 * GREEN_MM * scene.pinhole_height_mm)
+    assert optimum / 1.5 < front.diameter_mm[best] < optimum * 1.5
+
+
+# -- the model the optimizer sees is the part that is written -----------------------------------
+
+def test_the_optimizer_plate_is_the_written_part_and_they_score_alike():
+    config = tiny_config("near-eye", **{"plate.thickness_mm": 0.005,
+                                        "optimizer.quantize_share": 1.0,
+                                        "optimizer.iterations": 4})
+    process = resolve_process("photomask")
+    result = design([digit("3")], config, fabrication=FabricationSettings(process))
+    assert result.part is not None
+    layout = result.part.layout
+    text = holes_csv(layout)
+    read = read_holes_csv(text, config.scene.plate, outline_mm=layout.outline_mm,
+                          converge_mm=layout.converge_mm)
+    written = layout_fractions(read, process.radius_bias_mm)
+    np.testing.assert_allclose(written, result.design.open_fraction, rtol=1e-4, atol=1e-9)
+    renderer = Renderer(config.scene)
+    optics = made_optics(config.scene, process)
+    states = distribution_of(config.scene.eye).evaluation_states(8)
+    shown = result.built_displays if result.built_displays is not None \
+        else result.design.displays
+    ours = judge_made(renderer, result.targets, result.design.open_fraction, shown, optics,
+                      states, copies=2)
+    theirs = judge_made(renderer, result.targets, written, shown, optics, states, copies=2)
+    assert abs(float(ours.percentile(10)[0] - theirs.percentile(10)[0])) < 0.5
+
+
+# -- the light floor ----------------------------------------------------------------------------
+
+def test_a_floor_no_plate_reaches_is_refused_before_the_work():
+    config = tiny_config(**{"optimizer.min_efficiency": 0.6, "plate.thickness_mm": 0.005})
+    with pytest.raises(ValueError, match=r"optimizer.min_efficiency = 0.6 \(60.00% of the open "
+                       r"display's light\) cannot be met: the brightest plate with process "
+                       r"'photomask'.* passes \d+\.\d+%. Lower the floor to"):
+        design([digit("3")], config,
+               fabrication=FabricationSettings(resolve_process("photomask")))
+
+
+# -- the verdict --------------------------------------------------------------------------------
+
+def block(margin: float | None) -> dict:
+    best = None if margin is None else {
+        "pitch_mm": 1.0, "diameter_mm": 0.1, "efficiency": 0.03, "p10_db": [20.0 - margin],
+        "p50_db": [21.0], "p90_db": [22.0]}
+    return {"copies": 4, "states": 32, "neglected": [],
+            "part": {"efficiency": 0.025, "p10_db": [20.0], "p50_db": [22.0], "p90_db": [24.0]},
+            "regular": {"family": {}, "fitted": {}, "best": best},
+            "margin_db": None if margin is None else [margin]}
+
+
+@pytest.mark.parametrize(("margin", "level"), [
+    (MADE_MARGIN_DB + 0.5, "pass"), (1.0, "warn"), (-0.5, "fail"), (None, "info")])
+def test_made_verdict_levels(margin, level):
+    verdict = made_verdict(block(margin))
+    assert verdict.level == level
+    assert "20.0 dB at 2.5 % light" in verdict.text
