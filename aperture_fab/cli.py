@@ -353,11 +353,12 @@ EYE_COLUMN = 22
 def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
                             validated: bool, verdicts: Sequence[dict[str, str]] = ()) -> None:
     """The design table's lead: PSNR p10 / median / p90 over the eye distribution per variant
-    and target, then the eye-distribution verdict (or why there is none) and the report's other
-    warnings and failures."""
+    and target, then the eye-distribution verdict (or why there is none), the part as made
+    against the best regular array and the report's other warnings and failures."""
     import textwrap
 
     from aperture_fab.validation.report_html import LEVEL_WORDS, NOT_JUDGED
+    from aperture_fab.validation.verdicts import MADE_TOPIC
 
     headline = metrics.get("eye_distribution")
     if headline is None:
@@ -382,9 +383,11 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
     if verdict is not None:
         print(textwrap.fill(f"eye distribution: {LEVEL_WORDS[verdict['level']]}: "
                             f"{verdict['text']}", 100, subsequent_indent="  "))
-    # The report's other judged findings that need action (light, contrast, tolerances...).
+    # The part as made against the best regular array, whatever its level; then the report's
+    # other judged findings that need action (light, contrast, tolerances...).
     for other in verdicts:
-        if other["level"] in ("fail", "warn") and other["topic"] != "eye distribution":
+        if other["topic"] == MADE_TOPIC or (other["level"] in ("fail", "warn")
+                                            and other["topic"] != "eye distribution"):
             print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
                                 f"{other['text']}", 100, subsequent_indent="  "))
 

@@ -17,6 +17,7 @@ from aperture_fab.targets import digit
 from aperture_fab.validation.report import REPORT_VARIANTS, validate_report
 from aperture_fab.validation.validate import (
     MAX_TILT_SIGMA_DEG,
+    YIELD_MARGIN_DB,
     ValidationSettings,
     _tilt_offsets_mm,
     layout_fractions,
@@ -297,3 +298,29 @@ def test_a_tilt_into_the_eye_is_an_error():
     scene = resolve("near-eye", overrides={"eye.eye_relief_mm": 5.0}).scene
     with pytest.raises(ValueError, match="tilt_sigma_deg"):
         _tilt_offsets_mm(scene, (0.0, 0.0), math.radians(60.0), 0.0)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_moving_eye_design_is_judged_over_its_distribution_without_eye_draws(fitted_part):
+    """An eye distribution: each sample is its mean PSNR over states of the distribution, the
+    eye position error is not drawn (eye_sigma_mm has no effect), and with every other sigma 0
+    each sample is the part without errors, 3 dB above the default threshold."""
+    import torch
+    from conftest import tiny_config
+
+    _, targets, fitted, layout = fitted_part
+    config = tiny_config("near-eye", **{"optimizer.precision": "float64"})
+    process = replace(PROCESSES["photomask"], radius_sigma_mm=0.0, position_sigma_mm=0.0)
+    results = [tolerance_analysis(
+        config, targets, [torch.as_tensor(d) for d in fitted], layout, process,
+        ValidationSettings(tolerance_samples=4, gap_sigma_mm=0.0, eye_sigma_mm=eye,
+                           tilt_sigma_deg=0.0), None, torch.device("cpu"), torch.float64)
+        for eye in (0.0, 2.0)]
+    for result in results:
+        np.testing.assert_allclose(result["psnr_db"], result["threshold_db"] + YIELD_MARGIN_DB,
+                                   rtol=1e-9)
+        assert result["yield"] == 1.0 and result["eye_sigma_mm"] == 0.0
+        assert "eye distribution" in result["eye"]
+    # and differs from the nominal eye point's figure
+    assert results[0]["threshold_db"] != pytest.approx(nominal_psnr(fitted_part) - YIELD_MARGIN_DB,
+                                                       abs=0.01)
