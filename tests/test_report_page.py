@@ -17,6 +17,7 @@ import pytest
 from conftest import design_tiny
 from PIL import Image
 
+from aperture_fab.config.presets import DEFAULT_PROCESS
 from aperture_fab.validation import figures, part_figures
 from aperture_fab.validation.figures import (
     PANEL_INCHES,
@@ -146,12 +147,14 @@ def test_the_report_of_a_tiny_design_loads_whole_in_chromium(report_folder: Path
     # the verdict leads, in colour, with the part, process, date and command above it
     assert dom.index('class="overall overall-') < dom.index('<section id="light">')
     run = report["run"]
-    assert run["part"] == "plate.stl" and run["process"] == "resin"
+    assert run["part"] == "plate.stl" and run["process"] == DEFAULT_PROCESS
     assert run["command"].startswith("aperture-fab design ")
     assert datetime.datetime.fromisoformat(run["date"].replace("Z", "+00:00")).tzinfo
     assert f"Validation report: {run['part']}" in dom and run["date"] in dom
-    assert {v["topic"] for v in report["verdicts"]} >= {"light", "contrast", "tolerance"}
-    assert report["photometry"]["leakage"]["optical_density"] == 2.0  # resin
+    assert {v["topic"] for v in report["verdicts"]} >= {"light", "contrast", "tolerance",
+                                                        "made part"}
+    assert report["photometry"]["leakage"]["optical_density"] == 4.0  # photomask film
+    assert dom.index('<section id="made">') < dom.index('<section id="light">')
     # every embedded PNG decodes; the display is at its native size, one pixel per pixel
     sizes = []
     for data in DATA_PNG.findall(page):

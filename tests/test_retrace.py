@@ -135,7 +135,7 @@ def near_eye_case(seed: int) -> tuple[Scene, Part, np.ndarray]:
     open fractions in [0, 0.35] and a random display, pixel by pixel (the noisiest content)."""
     from aperture_fab.config.config import resolve
 
-    scene = resolve("near-eye").scene
+    scene = resolve("near-eye", overrides={"plate.thickness_mm": 0.3}).scene
     rng = np.random.default_rng(seed)
     part = make_part(rng.uniform(0.0, 0.35, scene.plate.cells[::-1]), scene,
                      FabricationSettings(PROCESSES["resin"]))
