@@ -183,8 +183,9 @@ def made_verdict(block: Mapping[str, Any]) -> Verdict:
     rival = (f"the best regular array at least as bright ({best['pitch_mm']:g} mm pitch, "
              f"{1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g} % "
              f"light, display fitted) reaches {min(best['p10_db']):.1f} dB")
-    fix = (" Fix: design with the default preset's process (photomask film) and light floor, "
-           "more iterations, or a plate whose process makes finer holes.")
+    fix = (" Fix: a process that makes finer, opaque holes (photomask film is the default), "
+           "more iterations, or a lower light floor (optimizer.min_efficiency) if the panel is "
+           "bright enough; a tracked display (optimizer.tracking) gains far more.")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
                        f"{MADE_MARGIN_DB:g} dB better.")
