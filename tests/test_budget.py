@@ -216,7 +216,7 @@ print(json.dumps({"measured": peak, "estimate": estimate}))
         ("near-eye-nominal", {"display.pixels": [800, 800], "eye.view_pixels": [48, 48]},
          "auto"),
         # Many views and states (small pupils keep it quick): the views and their gradient.
-        ("near-eye", {"eye.view_pixels": [640, 640], "eye.pupil_range_mm": [0.5, 1.0],
+        ("near-eye", {"eye.view_pixels": [800, 800], "eye.pupil_range_mm": [0.5, 1.0],
                       "eye.pupil_mm": 1.0, "eye.focus_range_diopters": "nominal",
                       "optimizer.eye_states": 4}, "auto"),
         # The torch path: pair tables and what autograd keeps per pair.
