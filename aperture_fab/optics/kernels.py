@@ -305,7 +305,7 @@ def _fill(cache, n, radius, geometry, offsets, states, s, vx, vy, i, j, shared):
 
 @_parallel
 def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, shared, margin,
-                 out):
+                 closed, out):
     """out[s, c, iy, ix]: the view of each eye state (see the module docstring).
 
     box: holes per axis that the union of the states' hole windows can span (the size of the
@@ -314,7 +314,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
     centre is its hole's axis point moved by t v / 2, so the holes whose lens lies wholly
     inside the pupil are a chord of each row, found without testing them. margin: the largest
     lens radius plus the largest hole displacement (mm), which that chord keeps clear of the
-    pupil's edge."""
+    pupil's edge. closed: holes of this radius (mm) or less are skipped, as if there were none
+    (0: none skipped; a sparse plate's closed cells then cost a read each)."""
     channels = stack.shape[3]
     size = box * box
     for iy in prange(vy.shape[0]):
@@ -342,6 +343,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                     c0, c1 = _chord(geometry, ox, oy, outer, i)
                     ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
                     for j in range(c0, c1 + 1):
+                        if radius[int(i * geometry[0] + j)] <= closed:
+                            continue
                         n = (i - origin_r) * box + (j - origin_c)
                         if not (shared and seen[n]):
                             seen[n] = True
@@ -372,7 +375,7 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
 
 @_parallel
 def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, shared, margin,
-                  grad_out, grad_radius, grad_stack, want_stack):
+                  closed, grad_out, grad_radius, grad_stack, want_stack):
     """Gradients of sum(grad_out * view) (as `view_forward`) into per-block buffers:
     grad_radius (B, K) and, when want_stack, grad_stack (B, L, H, W, C). Block b handles a
     band of view rows, so no two threads write one buffer; the caller sums over B."""
@@ -408,6 +411,8 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                         c0, c1 = _chord(geometry, ox, oy, outer, i)
                         ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
                         for j in range(c0, c1 + 1):
+                            if radius[int(i * geometry[0] + j)] <= closed:
+                                continue
                             n = (i - origin_r) * box + (j - origin_c)
                             if not (shared and seen[n]):
                                 seen[n] = True

@@ -54,6 +54,8 @@ DISK_SPOKES = 48
 #: (view pixel, hole) pairs evaluated at once; bounds memory to a few hundred MB.
 DEFAULT_CHUNK_PAIRS = 1_500_000
 _EPS = 1e-12
+#: A cell whose radius is at most this (mm) is closed: the renderer gives it sqrt(_EPS).
+CLOSED_RADIUS_MM = math.sqrt(2 * _EPS)
 #: An eye state must focus beyond this multiple of the pupil-to-plate distance (as Scene checks).
 FOCUS_MARGIN = 1.05
 
@@ -616,7 +618,10 @@ class _KernelView(torch.autograd.Function):
                        + slack)
         margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
             np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
-        args = (*args, math.ceil(spread / min(scene.plate.pitch_mm)) + 3, shared, margin)
+        # Without a radius gradient, closed cells (radius sqrt(_EPS): no area) are skipped; a
+        # gradient keeps them, as a closed cell's gradient can open it.
+        closed = 0.0 if ctx.needs_input_grad[0] else CLOSED_RADIUS_MM
+        args = (*args, math.ceil(spread / min(scene.plate.pitch_mm)) + 3, shared, margin, closed)
         cast(Any, kernels.view_forward)(*args, out)  # numba dispatchers are untyped
         ctx.args, ctx.dtype = args, stack.dtype
         return torch.from_numpy(out).to(stack.dtype)
