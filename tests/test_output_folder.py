@@ -116,12 +116,18 @@ def test_a_refused_rerun_leaves_the_folder_byte_identical(
 def test_a_rerun_without_validation_leaves_no_stale_report(folder: Path) -> None:
     stale = folder / "view_initial_old.png"  # a view of a target the new run does not have
     stale.write_bytes((folder / "view_initial_marker.png").read_bytes())
+    manifest = json.loads((folder / MANIFEST_NAME).read_text())
+    manifest["files"][stale.name] = manifest["files"]["view_initial_marker.png"]  # the run's
+    (folder / MANIFEST_NAME).write_text(json.dumps(manifest))
+    holiday = folder / "view_holiday.png"  # named like ours, but no manifest lists it
+    holiday.write_bytes(b"the user's photo")
     assert design_cli(folder, "--no-validate", "--seed", "5") == 0
     names = {p.name for p in folder.iterdir()}
     assert not names & {"report.json", "report.html", "views.npz", stale.name}
     assert set(manifest_files(folder)) == names - {"tiny.toml", "marker.png", "notes.txt",
-                                                   MANIFEST_NAME}
+                                                   holiday.name, MANIFEST_NAME}
     assert (folder / "notes.txt").read_text() == "the user's own file\n"
+    assert holiday.read_bytes() == b"the user's photo"
     check_folder(folder)
 
 

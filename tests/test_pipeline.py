@@ -361,7 +361,7 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_result(
     assert info.value.state["iteration"] == 4
     assert (out / "checkpoint.pt").is_file()
     assert not (out / "design.npz").exists()
-    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["state"]["iteration"] == 4  # the interruption's state, not the last checkpoint
     assert tmp_files(out) == []
 

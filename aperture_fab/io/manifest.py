@@ -4,59 +4,63 @@ file at once, and records them in `manifest.json`, which readers check.
 Why: files written one by one into the output folder leave a mix of two runs behind when a run
 is refused, skips a step or is killed (a new plate.stl beside the old plate.dxf). So a run
 writes everything into `<folder>/.staging-<pid>-<random>/` (same filesystem: renames are
-atomic), then `publish` renames each file into place, removes the files of an earlier run that
-this run did not write (only names this tool writes, never the user's files), and writes
-`manifest.json` LAST: each file's SHA-256 and size, the command, the tool version and the time.
-A reader (`check_folder`) refuses a folder whose files do not match its manifest: a partial or
-stale set. Until the new manifest is written, the folder holds a manifest marked incomplete, so
-a run killed while publishing is refused too, never read as a set.
+atomic), then `publish` renames each file into place, removes the files of the earlier set that
+this run did not write, and writes `manifest.json` LAST: each file's SHA-256 and size, the
+command, the tool version and the time. A reader (`check_folder`) refuses a folder whose files
+do not match its manifest: a partial or stale set. Until the new manifest is written, the folder
+holds a manifest marked incomplete, so a run killed while publishing is refused too, never read
+as a set.
+
+The tool deletes only what its own manifest lists: a file is the earlier run's because the
+folder's manifest.json names it and it still has the listed SHA-256, never because its name
+looks like ours (a user's view_holiday.png, or a target image kept in the folder, stays). The
+incomplete manifest names the earlier set too, so what a killed publish left is removed by the
+next one. Publishing holds an advisory lock (`.publish.lock`, fcntl.flock), so two runs into
+one folder publish one after the other and the folder ends up as the later one's set.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime
-import fnmatch
+import fcntl
 import hashlib
 import json
 import os
+import re
 import secrets
 import shutil
+import time
 from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from aperture_fab.io.files import write_atomic
-from aperture_fab.io.formats import PART_FORMATS
 
 __all__ = [
     "MANIFEST_NAME",
     "check_folder",
     "file_sha256",
-    "is_tool_file",
+    "listed_files",
     "publish",
     "refuse_overwrite",
+    "remove_listed",
     "staging",
 ]
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_SCHEMA_VERSION = 1
 STAGING_PREFIX = ".staging-"
-#: Files this tool writes into an output folder (exact names, then patterns). A publish removes
-#: these when an earlier run wrote them and this run did not; any other file is the user's.
-TOOL_FILE_NAMES: tuple[str, ...] = (
-    *(fmt.file_name for fmt in PART_FORMATS.values()),
-    "report.json", "report.html", "views.npz", "loss.png", "assembly.html",
-    "design.npz", "design.toml", "design.json", MANIFEST_NAME,
-)
-TOOL_FILE_PATTERNS: tuple[str, ...] = ("view_*.png", "display_*.png", "target_*.png")
+#: A staging folder's whole name (pid, 8 hex digits): only such folders are removed as orphans.
+STAGING_PATTERN = re.compile(re.escape(STAGING_PREFIX) + r"(\d+)-[0-9a-f]{8}")
+#: The advisory lock a publish holds (its holder removes it; see `_publish_lock`).
+LOCK_NAME = ".publish.lock"
+#: How long a publish waits for another run's publish into the same folder (renames and
+#: hashing: seconds, even for a large STL).
+LOCK_WAIT_S = 120.0
+LOCK_POLL_S = 0.05
 #: Read files in blocks this large when hashing (a large STL need not fit in memory twice).
 HASH_BLOCK_BYTES = 1 << 20
-
-
-def is_tool_file(name: str) -> bool:
-    """Whether a file name is one this tool writes into an output folder."""
-    return name in TOOL_FILE_NAMES or any(fnmatch.fnmatchcase(name, p) for p in TOOL_FILE_PATTERNS)
 
 
 def file_sha256(path: Path) -> str:
@@ -81,8 +85,9 @@ def _pid_alive(pid: int) -> bool:
 def _remove_orphans(folder: Path) -> None:
     """Staging folders of runs that died (SIGKILL, power loss): their pid no longer runs."""
     for path in folder.glob(f"{STAGING_PREFIX}*"):
-        pid_text = path.name[len(STAGING_PREFIX):].split("-", 1)[0]
-        if path.is_dir() and pid_text.isdigit() and not _pid_alive(int(pid_text)):
+        match = STAGING_PATTERN.fullmatch(path.name)
+        if match and path.is_dir() and not path.is_symlink() \
+                and not _pid_alive(int(match.group(1))):
             shutil.rmtree(path, ignore_errors=True)
 
 
@@ -99,11 +104,11 @@ def staging(folder: Path) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-def _manifest_text(files: dict[str, dict[str, Any]], command: Sequence[str], complete: bool
-                   ) -> str:
+def _manifest_text(files: dict[str, dict[str, Any]], command: Sequence[str], complete: bool,
+                   previous: dict[str, dict[str, Any]] | None = None) -> str:
     from aperture_fab import __version__
 
-    manifest = {
+    manifest: dict[str, Any] = {
         "schema_version": MANIFEST_SCHEMA_VERSION,
         "complete": complete,
         "tool": "aperture-fab",
@@ -112,6 +117,8 @@ def _manifest_text(files: dict[str, dict[str, Any]], command: Sequence[str], com
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "files": files,
     }
+    if not complete:  # the earlier set, so that the next publish removes what this one left
+        manifest["previous"] = previous or {}
     return json.dumps(manifest, indent=2) + "\n"
 
 
@@ -125,23 +132,90 @@ def _sync_folder(folder: Path) -> None:
             os.close(fd)
 
 
-def publish(stage: Path, folder: Path, command: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Move every file of `stage` into `folder`, remove the earlier run's tool files that this
-    run did not write, and write manifest.json last. Returns the manifest's files block
-    {name: {"sha256", "size_bytes"}}."""
+def listed_files(folder: Path) -> dict[str, dict[str, Any]]:
+    """The files folder's manifest.json says this tool wrote there, {name: {"sha256",
+    "size_bytes"}} (of a publish cut short: its new set and the earlier one); empty without a
+    readable manifest. Only plain names count: a manifest edited to name ../x or a/b lists
+    nothing."""
+    try:
+        manifest = json.loads((folder / MANIFEST_NAME).read_text())
+        entries = {**manifest.get("previous", {}), **manifest["files"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+    return {name: entry for name, entry in entries.items()
+            if isinstance(name, str) and name == Path(name).name and isinstance(entry, dict)
+            and name not in ("", ".", "..", MANIFEST_NAME)}
+
+
+def _remove(folder: Path, entries: dict[str, dict[str, Any]]) -> None:
+    """Remove the listed files that are still what the tool wrote (size and SHA-256): a file
+    the user has since edited or put in its place is theirs now, and stays."""
+    for name, entry in sorted(entries.items()):
+        path = folder / name
+        if path.is_file() and not path.is_symlink() \
+                and path.stat().st_size == entry.get("size_bytes") \
+                and file_sha256(path) == entry.get("sha256"):
+            path.unlink()
+
+
+def remove_listed(folder: Path) -> None:
+    """Remove the files folder's manifest.json lists (those still as written), then the
+    manifest: the earlier set goes and nothing else in the folder, whatever its name."""
+    _remove(folder, listed_files(folder))
+    (folder / MANIFEST_NAME).unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _publish_lock(folder: Path, wait_s: float) -> Iterator[None]:
+    """Hold folder's publish lock (an advisory fcntl.flock on LOCK_NAME), waiting up to wait_s
+    for another run's publish, else ValueError naming the folder. The holder removes the lock
+    file when done (no litter), so a waiter checks that the file it locked is still in place."""
+    path = folder / LOCK_NAME
+    deadline = time.monotonic() + wait_s
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            if time.monotonic() >= deadline:
+                raise ValueError(
+                    f"output folder {folder}: another aperture-fab run is publishing into it "
+                    f"({path} has been locked for over {wait_s:g} s); wait until it finishes "
+                    "and run again, or give another --out.") from None
+            time.sleep(LOCK_POLL_S)
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            if os.fstat(fd).st_ino == os.stat(path).st_ino:
+                break
+        os.close(fd)  # the previous holder removed the file we locked: lock the current one
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+        os.close(fd)
+
+
+def publish(stage: Path, folder: Path, command: Sequence[str], *,
+            wait_s: float = LOCK_WAIT_S) -> dict[str, dict[str, Any]]:
+    """Move every file of `stage` into `folder`, remove the files folder's earlier manifest
+    lists that this run did not write (any other file is the user's and stays), and write
+    manifest.json last; all under folder's publish lock (waiting up to wait_s for another
+    run's). Returns the manifest's files block {name: {"sha256", "size_bytes"}}."""
     names = sorted(p.name for p in stage.iterdir() if p.is_file())
     files = {name: {"sha256": file_sha256(stage / name),
                     "size_bytes": (stage / name).stat().st_size} for name in names}
-    # From here until the last line the folder is a mix: say so first, so a reader refuses it.
-    write_atomic(folder / MANIFEST_NAME, _manifest_text(files, command, complete=False))
-    for name in names:
-        os.replace(stage / name, folder / name)
-    for path in folder.iterdir():
-        if path.name not in files and path.name != MANIFEST_NAME and is_tool_file(path.name) \
-                and path.is_file():
-            path.unlink()
-    _sync_folder(folder)
-    write_atomic(folder / MANIFEST_NAME, _manifest_text(files, command, complete=True))
+    with _publish_lock(folder, wait_s):
+        earlier = listed_files(folder)
+        # From here until the last line the folder is a mix: say so first, so a reader refuses
+        # it, and name the earlier set, so that a publish killed midway is cleaned up next time.
+        write_atomic(folder / MANIFEST_NAME,
+                     _manifest_text(files, command, complete=False, previous=earlier))
+        for name in names:
+            os.replace(stage / name, folder / name)
+        _remove(folder, {n: e for n, e in earlier.items() if n not in files})
+        _sync_folder(folder)
+        write_atomic(folder / MANIFEST_NAME, _manifest_text(files, command, complete=True))
     return files
 
 

@@ -12,6 +12,7 @@ import io
 import json
 import pickle
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,6 +64,18 @@ __all__ = ["DesignResult", "check_light_floor", "design", "input_digests", "reco
            "run_design"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
+#: The checkpoint format: torch.save of data only (tensors, numbers, strings, None, lists,
+#: tuples, dicts), read back with weights_only=True. Version 1 had no marker and was read with
+#: the full unpickler, so a checkpoint could run code: those are refused, not read.
+CHECKPOINT_FORMAT = "aperture-fab checkpoint"
+CHECKPOINT_VERSION = 2
+CHECKPOINT_SCALARS = (str, bool, int, float)
+#: The optimizer state a checkpoint must hold (key: allowed types), checked before resuming.
+CHECKPOINT_STATE: dict[str, type | tuple[type, ...]] = {
+    "iteration": int, "history": list, "best": float, "best_iteration": int,
+    "mask_logits": torch.Tensor, "display": (torch.Tensor, type(None)),
+    "optimizer": (dict, type(None)), "snap_from": int, "continuous": (tuple, type(None)),
+}
 #: The display is re-fitted to the part as built for this share of the design's iterations.
 FIT_SHARE = 3
 MIN_FIT_ITERATIONS = 20
@@ -251,9 +264,28 @@ def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
     ])
 
 
+def _check_data(value: Any, where: str) -> None:
+    """Refuse (TypeError) a checkpoint value that is not plain data: what is saved must load
+    with torch.load(weights_only=True), or the resume would be refused hours later."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _check_data(key, where)
+            _check_data(item, f"{where}[{key!r}]")
+    elif isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            _check_data(item, f"{where}[{index}]")
+    elif not isinstance(value, (torch.Tensor, *CHECKPOINT_SCALARS)) and value is not None:
+        raise TypeError(f"checkpoint value {where} is a {type(value).__name__}; a checkpoint "
+                        "holds only tensors, numbers, strings, None and lists, tuples and "
+                        "dicts of them (convert it before saving).")
+
+
 def _save_checkpoint(folder: Path, state: dict[str, Any], inputs: dict[str, str]) -> None:
+    saved = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "state": state,
+             "inputs": inputs}
+    _check_data(saved, "checkpoint")
     buffer = io.BytesIO()
-    torch.save({"state": state, "inputs": inputs}, buffer)
+    torch.save(saved, buffer)
     write_atomic(folder / CHECKPOINT_NAME, buffer.getvalue())
 
 
@@ -281,15 +313,8 @@ def _resume_state(checkpoint: Path, inputs: dict[str, str], paths: Sequence[Path
     naming the input that changed."""
     if not checkpoint.exists():
         raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
-    try:
-        saved = torch.load(checkpoint, weights_only=False)
-    except (RuntimeError, EOFError, pickle.UnpicklingError) as err:  # truncated or not ours
-        raise ValueError(f"--resume: {checkpoint} cannot be read ({err}); it is truncated or "
-                         "not a checkpoint. Delete it and run without --resume.") from err
-    before = saved.get("inputs")
-    if before is None:
-        raise ValueError(f"--resume: {checkpoint} was made by an older aperture-fab that did "
-                         "not record its inputs' content; run without --resume to start again.")
+    saved = _load_checkpoint(checkpoint)
+    before = saved["inputs"]
     changed = [name for name in {**before, **inputs} if before.get(name) != inputs.get(name)]
     targets = {f"target image {n}": f" ({path})" for n, path in enumerate(paths, start=1)}
     changed = [name + targets.get(name, "") for name in changed]
@@ -299,6 +324,40 @@ def _resume_state(checkpoint: Path, inputs: dict[str, str], paths: Sequence[Path
                          "the inputs of the interrupted run, or run without --resume to start "
                          "again.")
     return dict(saved["state"])
+
+
+def _load_checkpoint(checkpoint: Path) -> dict[str, Any]:
+    """A checkpoint's contents, read as data only: torch's weights_only loader builds tensors
+    and plain containers and refuses any other object, so a checkpoint from someone else never
+    runs code here. ValueError for anything that is not a checkpoint of this format."""
+    fix = "Delete it and run without --resume to start again."
+    try:
+        with warnings.catch_warnings():  # torch warns about the pickle protocol it refuses
+            warnings.simplefilter("ignore")
+            saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:  # torch's words suggest loading it unsafely: not ours
+        raise ValueError(f"--resume: {checkpoint} holds objects other than data (it was written "
+                         "by an older aperture-fab, or not by aperture-fab); it was not loaded, "
+                         f"since loading it could run code. {fix}") from err
+    except (RuntimeError, EOFError, ValueError, OSError) as err:  # truncated or not ours
+        raise ValueError(f"--resume: {checkpoint} cannot be read ({err}); it is truncated or "
+                         f"not a checkpoint. {fix}") from err
+    if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"--resume: {checkpoint} is not an aperture-fab checkpoint of this "
+                         f"version (format {CHECKPOINT_FORMAT!r} version {CHECKPOINT_VERSION}); "
+                         f"an older aperture-fab made it, or another program. {fix}")
+    if saved.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"--resume: {checkpoint} has checkpoint version "
+                         f"{saved.get('version')!r}; this aperture-fab reads version "
+                         f"{CHECKPOINT_VERSION}. {fix}")
+    state, inputs = saved.get("state"), saved.get("inputs")
+    missing = [key for key, kind in CHECKPOINT_STATE.items()
+               if not isinstance(state, dict) or not isinstance(state.get(key), kind)]
+    if missing or not isinstance(inputs, dict):
+        what = ", ".join(f"state[{k!r}]" for k in missing) or "inputs"
+        raise ValueError(f"--resume: {checkpoint} lacks {what} or holds another type there; "
+                         f"it is damaged or not written by aperture-fab. {fix}")
+    return saved
 
 
 def recorded_config(config: Config, fabrication: FabricationSettings | None,

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from aperture_fab.io.files import write_atomic
+from aperture_fab.io.manifest import remove_listed
 from aperture_fab.sweep.results import figures_from_report, summary_line
 from aperture_fab.sweep.spec import (
     Choice,
@@ -136,8 +137,8 @@ def run_point(job: Job) -> tuple[dict[str, Any], dict[str, bytes]]:
 
     start, cpu_start = time.perf_counter(), time.process_time()
     folder = Path(tempfile.mkdtemp(prefix=f"sweep-{job.point.id}-")) if job.gather else job.folder
-    if not job.gather and folder.exists():
-        shutil.rmtree(folder)  # a failed attempt's files: never mix them with this run's
+    if not job.gather:
+        _clear_attempt(folder)  # a failed attempt's files: never mix them with this run's
     folder.mkdir(parents=True, exist_ok=True)
     threads = _set_threads(job.cpus)
     record: dict[str, Any] = {
@@ -178,6 +179,18 @@ def run_point(job: Job) -> tuple[dict[str, Any], dict[str, bytes]]:
                  and not p.name.startswith(".")}
         shutil.rmtree(folder, ignore_errors=True)
     return record, files
+
+
+def _clear_attempt(folder: Path) -> None:
+    """Remove an earlier attempt's files from a point's folder: its point.json, its checkpoint
+    and the set its manifest.json lists. Only those: anything else there is not the sweep's."""
+    from aperture_fab.pipeline.design_job import CHECKPOINT_NAME
+
+    if not folder.is_dir():
+        return
+    remove_listed(folder)
+    for name in (POINT_FILE, CHECKPOINT_NAME):
+        (folder / name).unlink(missing_ok=True)
 
 
 def _plain(value: Any) -> Any:
@@ -338,6 +351,8 @@ class _Sweep:
 
     def done(self, job: Job, record: dict[str, Any], files: dict[str, bytes]) -> None:
         folder = self.folder(job.point)
+        if files:
+            _clear_attempt(folder)  # the gathered set replaces an earlier attempt's
         folder.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():
             if name != POINT_FILE:
