@@ -265,6 +265,10 @@ def fake_report(gap_mm: float, pitch_mm: float, process: str) -> dict[str, Any]:
         "photometry": {"view_luminance_cd_m2": 50.0 / gap_mm, "retinal_illuminance_td": 80.0,
                        "leakage": {"contrast_ratio": float("inf")}},
         "fabrication": {"holes": 100, "violations": [{"rule": "min_web"}]},
+        "made_part": {"part": {"efficiency": 0.02, "p10_db": [p10 - 1, p10],
+                               "p50_db": [p10, p10]},
+                      "regular": {"best": {"p10_db": [p10 - 4, p10 - 3]}},
+                      "margin_db": [3.0, 3.0]},
     }
 
 
@@ -296,10 +300,13 @@ def test_figures_from_report() -> None:
                        "eye_p90_psnr_db": 23.0, "nominal_psnr_db": 22.0,
                        "light_efficiency": pytest.approx(0.02), "luminance_cd_m2": 5.0,
                        "retinal_illuminance_td": 80.0, "contrast_ratio": float("inf"),
-                       "fov_x_deg": 30.0,
+                       "made_p10_psnr_db": 20.0, "made_p50_psnr_db": 20.5,
+                       "made_light_efficiency": 0.02, "regular_p10_psnr_db": 17.0,
+                       "made_margin_db": 3.0, "fov_x_deg": 30.0,
                        "fov_y_deg": 20.0, "hole_count": 100, "rule_violations": 1}
     bare = figures_from_report({"eye_distribution": None, "photometry": None})
     assert bare["eye_p10_psnr_db"] is None and bare["luminance_cd_m2"] is None
+    assert bare["made_p10_psnr_db"] is None and bare["made_margin_db"] is None
 
 
 def test_resume_skips_finished_and_records_failures(sweep_dir: Path,

@@ -42,6 +42,15 @@ FIGURE_HELP: dict[str, str] = {
     "retinal_illuminance_td": "retinal illuminance, trolands (report photometry block)",
     "contrast_ratio": "contrast left by the light the plate material leaks (report photometry "
                       "block; inf: an opaque plate)",
+    "made_p10_psnr_db": "PSNR after gain (dB) of the part as made (made copies with the "
+                        "process's errors, diffraction, the material's veil), 10th percentile "
+                        "over copies x eye states (mean over targets; report made_part block)",
+    "made_p50_psnr_db": "the same, median",
+    "made_light_efficiency": "light efficiency of the part as made for a white display",
+    "regular_p10_psnr_db": "the same 10th percentile of the best regular pinhole array the "
+                           "process makes at least as bright as the part",
+    "made_margin_db": "made_p10_psnr_db less regular_p10_psnr_db: what the design gains over "
+                      "the best regular array at equal light",
     "fov_x_deg": "horizontal field of view, degrees",
     "fov_y_deg": "vertical field of view, degrees",
     "hole_count": "holes in the part",
@@ -68,6 +77,9 @@ def figures_from_report(report: Mapping[str, Any]) -> dict[str, Any]:
     fab = report.get("fabrication") or {}
     fov = report.get("scene", {}).get("eye", {}).get("fov_deg") or [None, None]
     light = report.get("photometry") or {}
+    made = report.get("made_part") or {}
+    part = made.get("part") or {}
+    best = (made.get("regular") or {}).get("best") or {}
     return {
         "eye_p10_psnr_db": _mean(psnr.get("p10")),
         "eye_p50_psnr_db": _mean(psnr.get("p50")),
@@ -77,6 +89,11 @@ def figures_from_report(report: Mapping[str, Any]) -> dict[str, Any]:
         "luminance_cd_m2": light.get("view_luminance_cd_m2"),
         "retinal_illuminance_td": light.get("retinal_illuminance_td"),
         "contrast_ratio": (light.get("leakage") or {}).get("contrast_ratio"),
+        "made_p10_psnr_db": _mean(part.get("p10_db")),
+        "made_p50_psnr_db": _mean(part.get("p50_db")),
+        "made_light_efficiency": part.get("efficiency"),
+        "regular_p10_psnr_db": _mean(best.get("p10_db")),
+        "made_margin_db": _mean(made.get("margin_db")),
         "fov_x_deg": fov[0],
         "fov_y_deg": fov[1],
         "hole_count": fab.get("holes"),

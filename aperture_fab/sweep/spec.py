@@ -49,8 +49,9 @@ Direction = Literal["maximize", "minimize"]
 #: The figures each point reports (see results.FIGURE_HELP); any can be an objective.
 Figure = Literal["eye_p10_psnr_db", "eye_p50_psnr_db", "eye_p90_psnr_db", "nominal_psnr_db",
                  "light_efficiency", "luminance_cd_m2", "retinal_illuminance_td",
-                 "contrast_ratio", "fov_x_deg", "fov_y_deg", "hole_count", "rule_violations",
-                 "seconds"]
+                 "contrast_ratio", "made_p10_psnr_db", "made_p50_psnr_db",
+                 "made_light_efficiency", "regular_p10_psnr_db", "made_margin_db", "fov_x_deg",
+                 "fov_y_deg", "hole_count", "rule_violations", "seconds"]
 FIGURES: tuple[Figure, ...] = get_args(Figure)
 MODES: tuple[Mode, ...] = get_args(Mode)
 DIRECTIONS: tuple[Direction, ...] = get_args(Direction)
