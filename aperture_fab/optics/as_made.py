@@ -126,9 +126,7 @@ def white_transmission(renderer: Renderer, open_fraction: torch.Tensor, states: 
                        ) -> torch.Tensor:
     """(S,) the plate's light efficiency per eye state, independent of content: the mean view
     of a uniform white display through the holes (the open display's view of it is 1)."""
-    pixels = renderer.scene.display.pixels
-    white = torch.ones(1, pixels[1], pixels[0], dtype=renderer.dtype, device=renderer.device)
     with torch.no_grad():
         views = renderer.render_states(open_fraction.to(renderer.device, renderer.dtype),
-                                       renderer.display_stack(white), states)
+                                       renderer.white_stack(), states)
     return views.mean((1, 2, 3))

@@ -321,6 +321,7 @@ class Renderer:
                 torch.as_tensor(per_channel, dtype=dtype, device=self.device), s=self._fft_shape)
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], _Pairs] = {}
+        self._white: torch.Tensor | None = None
 
     @property
     def _axis_length(self) -> float:
@@ -400,6 +401,16 @@ class Renderer:
         full = torch.fft.irfft2(spectrum[:, None] * kernel, s=self._fft_shape)
         c = self.kernel_size // 2
         return full[:, :, c : c + d.shape[-2], c : c + d.shape[-1]].unsqueeze(0)
+
+    def white_stack(self) -> torch.Tensor:
+        """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a
+        plate's light efficiency is its mean view of it)."""
+        if self._white is None:
+            pixels = self.scene.display.pixels
+            with torch.no_grad():
+                self._white = self.display_stack(torch.ones(
+                    1, pixels[1], pixels[0], dtype=self.dtype, device=self.device))
+        return self._white
 
     # -- rendering ----------------------------------------------------------------------------
 
