@@ -552,7 +552,9 @@ examples:
 
 PART is a design.npz (quantized and built for the process, like `export`), a holes.csv or an
 STL, perhaps edited by hand: holes that break the process's rules are validated anyway and
-the broken rules listed. The display content is re-fitted to the part (the display is
+the broken rules listed. The part a design wrote (its plate.stl, holes.csv or design.npz,
+unchanged) is judged exactly as `design` judged it: the same figures and verdicts. A part that
+differs (edited, or another process) gets its display content re-fitted to it (the display is
 software), from design.npz beside the config when there is one; --keep-display shows
 design.npz's content unchanged. Outputs: report.json, report.html, views.npz and
 display_<target>.png (the content to show with this part).
@@ -643,8 +645,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (default: validate_<PART stem> beside PART)")
     p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
     p.add_argument("--keep-display", action="store_true",
-                   help="show design.npz's display content unchanged (default: re-fit it to "
-                   "the part)")
+                   help="show design.npz's display content unchanged (default: kept for "
+                   "the design's own part, re-fitted to a part that differs)")
     p.add_argument("--tolerance-samples", type=int, metavar="N",
                    help="Monte Carlo samples of the tolerance analysis (0 skips it)")
     p.add_argument("--mesh-samples", type=int, metavar="N",

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import design_tiny
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -169,13 +170,50 @@ def test_validate_agrees_across_part_kinds_and_writes_valid_reports(copy: Path) 
         folder = copy / f"check_{kind}"
         assert {p.name for p in folder.iterdir()} >= {"report.json", "report.html", "views.npz",
                                                       "display_marker.png"}
-        assert report["checked_part"]["display"] == "fitted"
+        assert report["checked_part"]["display"] == "kept"  # the design's own part
         with np.load(folder / "views.npz") as views:
             assert views["as_built/marker"].shape == (1, 16, 16)
     psnr = {kind: as_built_psnr(r) for kind, r in reports.items()}
     assert psnr["csv"] == pytest.approx(psnr["npz"], abs=0.01)
     assert psnr["stl"] == pytest.approx(psnr["npz"], abs=0.01)
     assert reports["csv"]["fabrication"]["holes"] == reports["npz"]["fabrication"]["holes"]
+
+
+@pytest.fixture(scope="module")
+def validated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny design's folder with its own report (design validated it)."""
+    folder = tmp_path_factory.mktemp("validated")
+    assert design_tiny(folder, "--out", str(folder / "plate.stl"), "--quiet") == 0
+    return folder
+
+
+def _judgement(report: dict) -> dict:
+    """What a report says of a part: verdict levels, the figures over the eye distribution and
+    as made, and the nominal metrics."""
+    made = report["made_part"]
+    return {"verdicts": [(v["topic"], v["level"]) for v in report["verdicts"]],
+            "eye": report["eye_distribution"]["variants"]["as_built"]["psnr_db"],
+            "made": (made["part"], made["margin_db"]),
+            "nominal": {k: report["metrics"][k]["mean"]["psnr_db"]
+                        for k in ("optimized", "quantized", "as_built")},
+            "tolerance": report["tolerance"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["plate.stl", "holes.csv", "design.npz"])
+def test_validate_of_a_designs_part_says_what_design_said(validated: Path, name: str) -> None:
+    """One judgement: validate of the part a design wrote gives the design's own figures and
+    verdicts (the same part, display content and validation settings)."""
+    out = validated / f"again_{name.replace('.', '_')}"
+    assert main(["validate", str(validated / name), str(validated / "marker.png"), "--out",
+                 str(out), "--quiet"]) == 0
+    design = json.loads((validated / "report.json").read_text())
+    again = json.loads((out / "report.json").read_text())
+    assert again["checked_part"]["display"] == "kept"
+    want, got = _judgement(design), _judgement(again)
+    assert got["verdicts"] == want["verdicts"]
+    for key in ("eye", "made", "nominal", "tolerance"):
+        assert json.dumps(got[key], sort_keys=True) == json.dumps(want[key], sort_keys=True), key
 
 
 def test_closing_holes_in_the_table_changes_the_judged_part(copy: Path) -> None:

@@ -520,9 +520,14 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
     d = result.design
     buffer = io.BytesIO()
     shown = d.displays if result.built_displays is None else result.built_displays
-    np.savez_compressed(buffer, open_fraction=d.open_fraction, displays=d.displays,
-                        built_displays=shown, loss_history=d.loss_history,
-                        bounds=np.asarray(d.bounds), names=np.asarray(result.names))
+    # The design before quantization, when one was kept: validate judges it as design did.
+    arrays: dict[str, Any] = {
+        "open_fraction": d.open_fraction, "displays": d.displays, "built_displays": shown,
+        "loss_history": d.loss_history, "bounds": np.asarray(d.bounds),
+        "names": np.asarray(result.names)}
+    if d.continuous is not None:
+        arrays["continuous_open_fraction"], arrays["continuous_displays"] = d.continuous
+    np.savez_compressed(buffer, **arrays)
     write_atomic(folder / "design.npz", buffer.getvalue())
     write_atomic(folder / "design.toml", to_toml(result.config))
     for t, name in enumerate(result.names):

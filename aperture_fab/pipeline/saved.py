@@ -54,11 +54,14 @@ class SavedDesign:
     """A design.npz written by `aperture-fab design`.
 
     path: where it was read.
-    open_fraction: (rows, cols) float64, the design before quantization.
+    open_fraction: (rows, cols) float64, the design the part is made from (snapped to the
+        process's holes when the optimizer saw them).
     displays: (T, C, H, W) float64 linear, the display content optimized with the plate.
-    built_displays: (T, C, H, W) float64, the content re-fitted to the part, or None.
+    built_displays: (T, C, H, W) float64, the content shown with the part, or None.
     loss_history: (N,) float64.
     names: the design's target names.
+    continuous: (open fractions, displays) of the design before its plate was snapped, when
+        one was kept (optimizer.quantize_share < 1), else None.
     """
 
     path: Path
@@ -67,6 +70,13 @@ class SavedDesign:
     built_displays: np.ndarray | None
     loss_history: np.ndarray
     names: tuple[str, ...]
+    continuous: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def optimum(self) -> tuple[np.ndarray, np.ndarray]:
+        """The optimized design before quantization: (open fractions, displays)."""
+        return self.continuous if self.continuous is not None else (self.open_fraction,
+                                                                      self.displays)
 
 
 def part_kind(path: Path) -> PartKind:
@@ -104,6 +114,10 @@ def read_design(path: Path) -> SavedDesign:
                        if "loss_history" in data.files else np.zeros(0))
             names = (tuple(str(n) for n in data["names"]) if "names" in data.files
                      else tuple(f"target{i}" for i in range(len(displays))))
+            continuous = None
+            if "continuous_open_fraction" in data.files:
+                continuous = (np.asarray(data["continuous_open_fraction"], dtype=np.float64),
+                              np.asarray(data["continuous_displays"], dtype=np.float64))
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
         # A truncated file (an interrupted copy) fails in zipfile or zlib, not with OSError.
         raise ValueError(f"{path}: not a design.npz written by `aperture-fab design`, or "
@@ -118,7 +132,12 @@ def read_design(path: Path) -> SavedDesign:
         raise ValueError(f"{path}: open_fraction holds values from {np.nanmin(open_fraction):g} "
                          f"to {np.nanmax(open_fraction):g}; allowed: finite values from 0 to 1 "
                          "(the open share of each cell). Fix the array, or design again.")
-    return SavedDesign(path, open_fraction, displays, built, history, names)
+    if continuous is not None and (continuous[0].shape != open_fraction.shape
+                                   or continuous[1].shape != displays.shape):
+        raise ValueError(f"{path}: its continuous design has shapes {continuous[0].shape} and "
+                         f"{continuous[1].shape}, unlike the design's {open_fraction.shape} and "
+                         f"{displays.shape}; design again.")
+    return SavedDesign(path, open_fraction, displays, built, history, names, continuous)
 
 
 def check_design(design: SavedDesign, config: Config, config_path: Path) -> None:

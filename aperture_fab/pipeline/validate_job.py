@@ -1,23 +1,34 @@
 """The `aperture-fab validate` job: an existing part (a design.npz, a hole table or an STL,
 edited or not) judged for a config and its targets, with the report written beside it.
 
-The display is software and follows the plate: by default its content is re-fitted to the part
-(as `design` does for the part it makes), starting from the design's content when a design.npz
-lies beside the config.
+The part a design wrote (its holes read back from the STL or holes.csv, or design.npz itself)
+is judged exactly as `design` judged it: the same part, the display content the design ships
+with it, the same validation, so both print the same figures and verdicts. The display is
+software and follows the plate: a part that differs from the design's (an edited hole table, a
+mesh of another design, another process) gets its display content re-fitted to it with the
+same loss `design` uses (the part as made), starting from the design's content when a
+design.npz lies beside the config.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from aperture_fab.config.config import Config
-from aperture_fab.fabrication.part import Part, fabrication_settings
+from aperture_fab.fabrication.part import (
+    FabricationSettings,
+    Part,
+    fabrication_settings,
+    made_optics,
+    make_part,
+)
+from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS
 from aperture_fab.io.images import encode_png, prepare_targets
@@ -43,6 +54,9 @@ __all__ = ["DisplaySource", "RecheckResult", "run_validate"]
 VALIDATE_COMMAND = ("python", "-c", "aperture_fab.pipeline.validate_job.run_validate(...)")
 #: Display content: fitted to the part, kept from the design, or the targets themselves.
 DisplaySource = Literal["fitted", "kept", "targets"]
+#: Holes read back from a written part (an STL's float32 vertices, holes.csv's six decimals)
+#: that lie this close to the design's own, in centre and radius (mm), are the design's part.
+SAME_HOLES_MM = 1e-4
 
 
 @dataclass(frozen=True)
@@ -64,11 +78,34 @@ class RecheckResult:
     timings_s: dict[str, float]
 
 
+def design_part(design: SavedDesign, loaded: Part, config: Config,
+                fabrication: FabricationSettings) -> Part | None:
+    """The part the design made, when `loaded` holds its holes (every hole in the same cell,
+    centre and radius within SAME_HOLES_MM), else None: an edited table, another design's
+    mesh, another process."""
+    try:
+        own = make_part(design.open_fraction, config.scene, fabrication)
+    except ValueError:  # a part made with --force, or another process
+        return None
+    a, b = loaded.layout, own.layout
+    if a.count != b.count:
+        return None
+    order_a = np.lexsort((a.cells[:, 1], a.cells[:, 0]))
+    order_b = np.lexsort((b.cells[:, 1], b.cells[:, 0]))
+    same = (np.array_equal(a.cells[order_a], b.cells[order_b])
+            and np.allclose(a.radii_mm[order_a], b.radii_mm[order_b], rtol=0, atol=SAME_HOLES_MM)
+            and np.allclose(a.centres_mm[order_a], b.centres_mm[order_b], rtol=0,
+                            atol=SAME_HOLES_MM))
+    return own if same else None
+
+
 def _display_content(config: Config, targets: np.ndarray, on_display: np.ndarray,
                      as_built: np.ndarray, design: SavedDesign | None, keep: bool,
-                     progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, DisplaySource]:
+                     process: Process, progress: bool
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, DisplaySource]:
     """(designed, shown, fit loss history, source): the content the design was optimized with
-    and the content shown with the part (both (T, C, H, W))."""
+    and the content shown with the part (both (T, C, H, W)); a re-fit uses the loss `design`
+    uses, the part as `process` makes it."""
     settings = config.optimizer
     if settings.display == "target":
         return on_display, on_display, np.zeros(0), "targets"
@@ -79,13 +116,17 @@ def _display_content(config: Config, targets: np.ndarray, on_display: np.ndarray
                              "the display to the part.")
         designed = start = on_display
     else:
-        designed = design.displays
+        designed = design.optimum[1]
         start = design.built_displays if design.built_displays is not None else design.displays
     if keep:
         return designed, start, np.zeros(0), "kept"
+    try:
+        optics = made_optics(config.scene, process) if settings.quantize_share > 0 else None
+    except UnmakeableError:  # the process makes no hole in this plate's cells
+        optics = None
     iterations = max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE)
     fitted, history = fit_display(config.scene, targets, as_built, start, settings, iterations,
-                                  progress=progress)
+                                  optics=optics, progress=progress)
     return designed, fitted, history, "fitted"
 
 
@@ -122,7 +163,8 @@ def run_validate(
 
     config_path: default design.toml beside the part. process: overrides the config's
     [process] name. keep_display: show design.npz's display content unchanged instead of
-    re-fitting it to the part. tolerance_samples, mesh_samples: override [validation].
+    re-fitting it to the part (the design's own part keeps it always). tolerance_samples,
+    mesh_samples: override [validation].
     stage: called with a line as each stage starts (for logs, where there are no progress bars).
     """
     from aperture_fab.validation.evidence import assemble
@@ -153,6 +195,10 @@ def run_validate(
             f"({config.scene.plate.cells[0]} x {config.scene.plate.cells[1]} cells, from "
             f"{config_path}). Give the part the design wrote (plate.stl or holes.csv), or the "
             "config it was made with (--config).")
+    own = None if design is None else design_part(design, loaded, config, fabrication)
+    if own is not None:  # judged as design judged it: its part, with the mesh as given
+        loaded = replace(own, mesh=loaded.mesh)
+        keep_display = True
     folder = output_folder(out if out is not None else part.parent / f"validate_{part.stem}")
     _refuse_design_folder(folder)
     view_targets, on_display = prepare_targets(
@@ -164,9 +210,10 @@ def run_validate(
     if stage is not None and not keep_display:
         stage(f"validate: fitting the display content to the part's {loaded.layout.count} holes")
     designed, shown, fit_history, source = _display_content(
-        config, view_targets, on_display, as_built, design, keep_display, progress)
+        config, view_targets, on_display, as_built, design, keep_display, fabrication.process,
+        progress)
     timings["fit_display_s"] = time.perf_counter() - start
-    open_fraction = (design.open_fraction if design is not None
+    open_fraction = (design.optimum[0] if design is not None
                      else layout_fractions(loaded.layout))
     if stage is not None:
         stage("validate: the part as built, its tolerances, the mesh and diffraction")
