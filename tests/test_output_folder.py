@@ -91,7 +91,9 @@ def test_a_run_publishes_every_file_in_its_manifest(folder: Path) -> None:
             "views.npz"} <= set(files)
     for name, entry in files.items():
         data = (folder / name).read_bytes()
-        assert entry == {"sha256": hashlib.sha256(data).hexdigest(), "size_bytes": len(data)}
+        assert entry["sha256"] == hashlib.sha256(data).hexdigest()
+        assert entry["size_bytes"] == len(data)
+        assert ("content_sha256" in entry) == name.endswith(".toml")
     # The user's files are not the run's; no staging folder or temporary file is left.
     assert "notes.txt" not in files and "marker.png" not in files
     assert not [p for p in folder.iterdir() if p.name.startswith(".")]
@@ -135,7 +137,13 @@ def test_a_rerun_without_validation_leaves_no_stale_report(folder: Path) -> None
 
 
 def _append(path: Path) -> None:
-    path.write_bytes(path.read_bytes() + b"\n")
+    """Change a file: a byte more, or for a TOML file a value (a comment is harmless)."""
+    if path.suffix == ".toml":
+        text = path.read_text()
+        assert "seed = 0" in text
+        path.write_text(text.replace("seed = 0", "seed = 1", 1))
+    else:
+        path.write_bytes(path.read_bytes() + b"\n")
 
 
 @pytest.mark.parametrize(("changed", "command", "named"), [
@@ -154,6 +162,32 @@ def test_readers_refuse_a_folder_that_does_not_match_its_manifest(
     assert main([a.format(d=folder) for a in command]) != 0
     err = capsys.readouterr().err
     assert named in err and MANIFEST_NAME in err and "re-run" in err
+
+
+def test_a_comment_in_design_toml_is_harmless(folder: Path) -> None:
+    config = folder / "design.toml"
+    config.write_text("# printed on the lab's film, 2026-11-26\n" + config.read_text()
+                      + "\n# gap checked with calipers\n")
+    check_folder(folder)
+    assert main(["render", str(folder / "design.npz"), "--out", str(folder.parent / "v.png"),
+                 "--quiet"]) == 0
+
+
+def test_a_rerun_into_a_validated_design_is_refused_unless_forced(
+        folder: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    checked = folder / "validate_plate"  # validate's default folder beside the part
+    assert main(["validate", str(folder / "plate.stl"), str(folder / "marker.png"), "--quiet",
+                 *FAST_VALIDATION]) == 0
+    assert (checked / "report.json").is_file()
+    before = snapshot(folder)
+    assert design_cli(folder, "--no-validate", "--seed", "5") != 0
+    err = capsys.readouterr().err
+    assert "was validated" in err and str(checked / "report.json") in err and "--force" in err
+    assert snapshot(folder) == before
+    (checked / "notes.txt").write_text("mine")  # the user's file in it stays, and so the folder
+    assert design_cli(folder, "--no-validate", "--seed", "5", "--force") == 0
+    assert [p.name for p in checked.iterdir()] == ["notes.txt"]
+    check_folder(folder)
 
 
 def test_a_partial_set_is_refused_and_deleting_the_manifest_accepts_it(

@@ -6,8 +6,10 @@ is refused, skips a step or is killed (a new plate.stl beside the old plate.dxf)
 writes everything into `<folder>/.staging-<pid>-<random>/` (same filesystem: renames are
 atomic), then `publish` renames each file into place, removes the files of the earlier set that
 this run did not write, and writes `manifest.json` LAST: each file's SHA-256 and size, the
-command, the tool version and the time. A reader (`check_folder`) refuses a folder whose files
-do not match its manifest: a partial or stale set. Until the new manifest is written, the folder
+command, the tool version and the time (and for a TOML file the SHA-256 of its parsed content).
+A reader (`check_folder`) refuses a folder whose files do not match its manifest: a partial or
+stale set; a TOML file whose content is unchanged matches (a comment added to design.toml is
+harmless, a changed value is not). Until the new manifest is written, the folder
 holds a manifest marked incomplete, so a run killed while publishing is refused too, never read
 as a set.
 
@@ -31,6 +33,7 @@ import re
 import secrets
 import shutil
 import time
+import tomllib
 from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -203,8 +206,7 @@ def publish(stage: Path, folder: Path, command: Sequence[str], *,
     manifest.json last; all under folder's publish lock (waiting up to wait_s for another
     run's). Returns the manifest's files block {name: {"sha256", "size_bytes"}}."""
     names = sorted(p.name for p in stage.iterdir() if p.is_file())
-    files = {name: {"sha256": file_sha256(stage / name),
-                    "size_bytes": (stage / name).stat().st_size} for name in names}
+    files = {name: _entry(stage / name) for name in names}
     with _publish_lock(folder, wait_s):
         earlier = listed_files(folder)
         # From here until the last line the folder is a mix: say so first, so a reader refuses
@@ -217,6 +219,37 @@ def publish(stage: Path, folder: Path, command: Sequence[str], *,
         _sync_folder(folder)
         write_atomic(folder / MANIFEST_NAME, _manifest_text(files, command, complete=True))
     return files
+
+
+def _toml_content_sha256(path: Path) -> str | None:
+    """SHA-256 of a TOML file's content (its parsed tables, as sorted JSON), blind to comments
+    and layout; None when it does not parse."""
+    try:
+        content = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+    canonical = json.dumps(content, sort_keys=True, default=str).encode()
+    return hashlib.sha256(canonical).hexdigest()
+
+
+def _entry(path: Path) -> dict[str, Any]:
+    """A file's manifest entry: SHA-256 and size, and for a TOML file the SHA-256 of its
+    content (so a comment the user adds to design.toml does not make the set stale)."""
+    entry: dict[str, Any] = {"sha256": file_sha256(path), "size_bytes": path.stat().st_size}
+    if path.suffix == ".toml":
+        content = _toml_content_sha256(path)
+        if content is not None:
+            entry["content_sha256"] = content
+    return entry
+
+
+def _matches(path: Path, entry: dict[str, Any]) -> bool:
+    """Whether a file is what its manifest entry says: the same bytes, or for a TOML file the
+    same content (comments and layout aside)."""
+    if path.stat().st_size == entry.get("size_bytes") and file_sha256(path) == entry.get("sha256"):
+        return True
+    content = entry.get("content_sha256")
+    return content is not None and _toml_content_sha256(path) == content
 
 
 def _refuse(folder: Path, problem: str, command: Sequence[str]) -> ValueError:
@@ -254,8 +287,8 @@ def check_folder(folder: Path, *, edited_ok: Collection[str] = ()) -> None:
             raise _refuse(folder, f"{name} is listed but missing", command)
         if name in edited_ok:
             continue
-        size = file.stat().st_size
-        if size != entry["size_bytes"] or file_sha256(file) != entry["sha256"]:
+        if not _matches(file, entry):
+            size = file.stat().st_size
             raise _refuse(folder, f"{name} differs from the file the run wrote ({size} bytes, "
                           f"{entry['size_bytes']} listed)", command)
 

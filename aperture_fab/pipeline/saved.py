@@ -7,6 +7,7 @@ with the broken rules listed (`load_part`).
 
 from __future__ import annotations
 
+import json
 import math
 import zipfile
 import zlib
@@ -33,6 +34,7 @@ __all__ = [
     "SavedDesign",
     "check_design",
     "check_sources",
+    "validations_of",
     "design_beside",
     "design_display",
     "load_part",
@@ -193,6 +195,27 @@ def _layout_from_mesh(mesh: PlateMesh, path: Path, scene: Scene, config_path: Pa
             f"plate.thickness_mm = {t:g}; set plate.thickness_mm = {layout.thickness_mm:.6g} in "
             "the config, or give the config the part was made with.")
     return layout
+
+
+def validations_of(folder: Path) -> list[Path]:
+    """The validation folders inside a design folder that judged one of its parts: sub-folders
+    holding a report.json with a "checked_part" naming a file of `folder` (what `validate`
+    writes, by default validate_<part> beside the part; the path is as the user gave it)."""
+    if not folder.is_dir():
+        return []
+    found = []
+    for child in sorted(folder.iterdir()):
+        report = child / "report.json"
+        if not (child.is_dir() and not child.is_symlink() and report.is_file()):
+            continue
+        try:
+            checked = json.loads(report.read_text()).get("checked_part") or {}
+            part = Path(str(checked["path"]))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue
+        if (folder / part.name).is_file():
+            found.append(child)
+    return found
 
 
 def check_sources(config_path: Path, part: Path, kind: PartKind) -> None:
