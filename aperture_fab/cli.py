@@ -247,6 +247,35 @@ def _add_validation_flags(parser: argparse.ArgumentParser) -> None:
                        "(default 12; 0 skips it)")
 
 
+#: The choices of --alpha and --fit: aperture_fab.io.images' ALPHA_BACKGROUNDS and TARGET_FITS,
+#: written out as the parser is built without importing images (PIL is heavy).
+ALPHA_CHOICES = ("black", "white", "refuse")
+FIT_CHOICES = ("stretch", "pad", "crop")
+
+
+def _add_target_flags(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("target images")
+    group.add_argument("--alpha", choices=ALPHA_CHOICES,
+                       help="what a target's transparent pixels are composited on, or refuse "
+                       "one that has any (default black, with a warning: black is no light on "
+                       "a display, as the transparent areas show nothing)")
+    group.add_argument("--fit", choices=FIT_CHOICES, default="stretch",
+                       help="a target of another aspect than the display's: stretch it (the "
+                       "default, with a warning: every pixel kept, as earlier designs were "
+                       "made), pad it with black (letterbox, centred) or crop its centre. Give "
+                       "validate, render and display the --fit the design was made with")
+    group.add_argument("--frame", type=int, metavar="N",
+                       help="the frame of an animated target (GIF, APNG, multi-page TIFF) to "
+                       "use, 0 the first (default: the first, with a warning)")
+
+
+def _target_options(args: argparse.Namespace) -> Any:
+    """The TargetOptions of --alpha, --fit and --frame."""
+    from aperture_fab.io.images import TargetOptions
+
+    return TargetOptions(alpha=args.alpha, fit=args.fit, frame=args.frame)
+
+
 def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
     from aperture_fab.fabrication.part import fabrication_settings
 
@@ -413,6 +442,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
                  + f", into {folder}/")
     try:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
+                            target_options=_target_options(args),
                             validation=validation, resume=args.resume, progress=output.progress,
                             command=args.command_line, stage=output.stage)
     except Interrupted as stop:
@@ -457,6 +487,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from aperture_fab.pipeline.validate_job import run_validate
 
     result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
+                          target_options=_target_options(args),
                           process=args.process, keep_display=args.keep_display,
                           tolerance_samples=args.tolerance_samples,
                           mesh_samples=args.mesh_samples, progress=args.output.progress,
@@ -506,6 +537,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         focus = "infinity" if args.focus == "infinity" else _focus_mm(args.focus)
     rendered = run_render(
         args.part, config_path=args.config, target=args.target, target_index=args.target_index,
+        target_options=_target_options(args),
         eye_mm=None if args.eye is None else _pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
         focus_mm=focus, mesh=args.mesh, mesh_samples=args.mesh_samples, process=args.process,
         out=args.out)
@@ -524,6 +556,7 @@ def _cmd_display(args: argparse.Namespace) -> int:
         focus = "infinity" if args.focus == "infinity" else _focus_mm(args.focus)
     frame = run_display(
         args.part, args.target, eye_mm=_pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
+        target_options=_target_options(args),
         focus_mm=focus, iterations=args.iterations, config_path=args.config,
         target_index=args.target_index, process=args.process, out=args.out)
     x, y = frame.eye_mm
@@ -612,6 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_flags(p)
     _add_fabrication_flags(p)
     _add_validation_flags(p)
+    _add_target_flags(p)
     p.set_defaults(func=_cmd_design)
 
     p = sub.add_parser("export", help="rebuild part files from a saved design",
@@ -651,6 +685,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Monte Carlo samples of the tolerance analysis (0 skips it)")
     p.add_argument("--mesh-samples", type=int, metavar="N",
                    help="rays per (view pixel, hole) pair when re-tracing the mesh (0 skips it)")
+    _add_target_flags(p)
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("render", help="the view through a part for an eye position",
@@ -677,6 +712,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
     p.add_argument("--out", type=Path, metavar="VIEW.png",
                    help="PNG to write (default: view_<PART stem>.png beside PART)")
+    _add_target_flags(p)
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("display", help="the display frame for a tracked eye state",
@@ -705,6 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
     p.add_argument("--out", type=Path, required=True, metavar="FRAME.png",
                    help="PNG to write")
+    _add_target_flags(p)
     p.set_defaults(func=_cmd_display)
 
     p = sub.add_parser("assembly", help="the assembly sheet (HTML) of a design folder",

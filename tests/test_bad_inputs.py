@@ -369,3 +369,85 @@ def test_a_zip_that_is_no_design_is_refused(folder: Path,
     assert run(["export", "{d}/other.npz", "--config", "{d}/design.toml", "--out", "{d}/x"],
                folder) == EXIT_BAD_INPUT
     assert "not a design.npz" in capsys.readouterr().err
+
+
+# -- target images (issue 21, item 6): --alpha, --fit, --frame reach every command -------------
+
+
+def _transparent(folder: Path) -> None:
+    """alpha.png: grey (sRGB 200), transparent in its left half."""
+    pixels = np.full((32, 32, 4), 200, dtype=np.uint8)
+    pixels[:, :, 3] = 255
+    pixels[:, :16, 3] = 0
+    from PIL import Image
+
+    Image.fromarray(pixels, "RGBA").save(folder / "alpha.png")
+
+
+def _animated(folder: Path) -> None:
+    from PIL import Image
+
+    frames = [Image.new("L", (32, 32), level) for level in (60, 120, 180)]
+    frames[0].save(folder / "anim.gif", save_all=True, append_images=frames[1:], duration=100)
+
+
+REFUSE = "alpha.png: the image is transparent or partly transparent in 50.0% of its pixels"
+TARGET_CASES: list[tuple[str, Setup, list[str], int, str]] = [
+    ("--alpha refuse (design)", _transparent,
+     ["design", "{d}/alpha.png", "--config", "{d}/tiny.toml", "--out", "{d}/run", "--alpha",
+      "refuse"], EXIT_BAD_INPUT, REFUSE),
+    ("--alpha refuse (validate)", _transparent,
+     ["validate", "{d}/holes.csv", "{d}/alpha.png", "--alpha", "refuse", *FAST],
+     EXIT_BAD_INPUT, REFUSE),
+    ("--alpha refuse (render)", _transparent,
+     ["render", "{d}/design.npz", "{d}/alpha.png", "--alpha", "refuse", "--out", "{d}/v.png"],
+     EXIT_BAD_INPUT, REFUSE),
+    ("--alpha refuse (display)", _transparent,
+     ["display", "{d}/design.npz", "{d}/alpha.png", "--eye", "0,0", "--pupil", "4", "--alpha",
+      "refuse", "--out", "{d}/f.png"], EXIT_BAD_INPUT, REFUSE),
+    ("--frame out of range", _animated,
+     ["render", "{d}/design.npz", "{d}/anim.gif", "--frame", "3", "--out", "{d}/v.png"],
+     EXIT_BAD_INPUT, "anim.gif: --frame 3 is out of range; the file has 3 frame(s)"),
+    ("--frame negative", _animated,
+     ["render", "{d}/design.npz", "{d}/anim.gif", "--frame", "-1", "--out", "{d}/v.png"],
+     EXIT_BAD_INPUT, "--frame -1 is not allowed; give a whole number from 0"),
+    ("--fit unknown", _nothing,
+     ["render", "{d}/design.npz", "{d}/marker.png", "--fit", "zoom", "--out", "{d}/v.png"],
+     EXIT_USAGE, "argument --fit: invalid choice: 'zoom'"),
+    ("a folder as the target", _folder("targets"),
+     ["render", "{d}/design.npz", "{d}/targets", "--out", "{d}/v.png"], EXIT_BAD_INPUT,
+     "target image {d}/targets is a folder; give an image file"),
+]
+
+
+@pytest.mark.parametrize(("setup", "argv", "status", "fragment"),
+                         [case[1:] for case in TARGET_CASES],
+                         ids=[case[0] for case in TARGET_CASES])
+def test_a_bad_target_gives_one_clear_line_and_its_status(
+        folder: Path, capsys: pytest.CaptureFixture[str], setup: Setup, argv: list[str],
+        status: int, fragment: str) -> None:
+    test_bad_input_gives_one_clear_line_and_its_status(folder, capsys, setup, argv, status,
+                                                       fragment)
+
+
+def test_target_warnings_name_the_file_and_the_flag(folder: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """The default alpha, frame and fit are said on the command line; choosing them is not."""
+    _transparent(folder)
+    _animated(folder)
+    (folder / "wide.png").write_bytes(encode_png(np.full((3, 32, 64), 0.5)))
+    for target in ("alpha.png", "anim.gif", "wide.png"):
+        assert run(["render", "{d}/design.npz", f"{{d}}/{target}", "--out", "{d}/v.png"],
+                   folder) == EXIT_OK
+    err = capsys.readouterr().err
+    assert f"warning: target image {folder}/alpha.png is transparent in 50.0%" in err
+    assert "composited on black" in err and "--alpha white" in err
+    assert f"warning: target image {folder}/anim.gif is an animation" in err
+    assert "of 3 frames; the first (--frame 0) is used" in err
+    assert f"warning: target image '{folder}/wide.png' is 64 x 32 pixels" in err
+    assert "--fit pad" in err
+    for target, flags in (("alpha.png", ["--alpha", "white"]), ("anim.gif", ["--frame", "1"]),
+                          ("wide.png", ["--fit", "pad"]), ("wide.png", ["--fit", "crop"])):
+        assert run(["render", "{d}/design.npz", f"{{d}}/{target}", *flags, "--out",
+                    "{d}/v.png"], folder) == EXIT_OK
+        assert "warning: target image" not in capsys.readouterr().err, flags

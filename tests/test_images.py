@@ -16,6 +16,7 @@ from PIL import Image
 
 from aperture_fab.io.images import (
     MAX_IMAGE_PIXELS,
+    TargetWarning,
     decode_image,
     encode_png,
     is_grey,
@@ -152,7 +153,8 @@ def test_decode_mode_i_from_pgm() -> None:
 def test_decode_rgba_composites_on_black_in_linear_light() -> None:
     pixels = np.array([[[255, 255, 255, 128], [200, 100, 0, 51], [10, 20, 30, 0],
                         [90, 180, 45, 255]]], dtype=np.uint8)
-    decoded = decode_image(saved(Image.fromarray(pixels, "RGBA")), "alpha.png")
+    with pytest.warns(TargetWarning, match="alpha.png is transparent in 75.0%.*on black"):
+        decoded = decode_image(saved(Image.fromarray(pixels, "RGBA")), "alpha.png")
     # Half-covered white is half the light (0.502), not sRGB 0.5 of grey (0.214).
     np.testing.assert_allclose(decoded[:, 0, 0], 128 / 255, atol=1e-12)
     np.testing.assert_allclose(decoded[:, 0, 1],
@@ -163,7 +165,7 @@ def test_decode_rgba_composites_on_black_in_linear_light() -> None:
 
 def test_decode_la() -> None:
     pixels = np.array([[[200, 100], [255, 255]]], dtype=np.uint8)
-    decoded = decode_image(saved(Image.fromarray(pixels, "LA")), "la.png")
+    decoded = decode_image(saved(Image.fromarray(pixels, "LA")), "la.png", alpha="black")
     np.testing.assert_allclose(decoded[:, 0, 0], lin(200) * 100 / 255, atol=1e-12)
     np.testing.assert_allclose(decoded[:, 0, 1], 1.0, atol=1e-12)
 
@@ -176,7 +178,7 @@ def test_decode_palette(transparent: bool) -> None:
         image.putpixel((x, 0), index)
     data = saved(image, transparency=0) if transparent else saved(image)
     assert Image.open(io.BytesIO(data)).mode == "P"
-    decoded = decode_image(data, "palette.png")
+    decoded = decode_image(data, "palette.png", alpha="black")
     first = [0.0, 0.0, 0.0] if transparent else [0.0, 0.0, 1.0]
     np.testing.assert_allclose(decoded[:, 0, 0], first, atol=1e-12)
     np.testing.assert_allclose(decoded[:, 0, 1], [1.0, 0.0, 0.0], atol=1e-12)
@@ -186,7 +188,7 @@ def test_decode_palette(transparent: bool) -> None:
 def test_decode_rgb_colour_key_transparency() -> None:
     pixels = np.array([[[0, 0, 255], [255, 255, 0]]], dtype=np.uint8)
     data = saved(Image.fromarray(pixels), transparency=(0, 0, 255))
-    decoded = decode_image(data, "keyed.png")
+    decoded = decode_image(data, "keyed.png", alpha="black")
     assert decoded[:, 0, 0].tolist() == [0.0, 0.0, 0.0]
     assert decoded[:, 0, 1].tolist() == [1.0, 1.0, 0.0]
 

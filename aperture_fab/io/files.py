@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import os
 import secrets
-from collections.abc import Sequence
+import stat
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from aperture_fab.io.formats import PART_SUFFIXES
-from aperture_fab.io.images import decode_image
+from aperture_fab.io.images import TargetOptions, decode_image, fit_target
 
 __all__ = ["load_targets", "output_folder", "write_atomic"]
 
@@ -50,19 +51,70 @@ def output_folder(out: Path) -> Path:
     return folder
 
 
-def load_targets(paths: Sequence[Path]) -> tuple[list[np.ndarray], list[str]]:
-    """Read and decode target images; names are the file stems, made unique."""
+#: How a target image is opened. O_NONBLOCK: should the path become a FIFO after the check,
+#: open returns at once (a blocking open waits for a writer) and fstat refuses it; it changes
+#: nothing for a regular file. O_BINARY: Windows only.
+TARGET_OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
+
+#: What a file that is not a regular file is, in words, by its stat type test.
+FILE_KINDS: tuple[tuple[Callable[[int], bool], str], ...] = (
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _not_regular(path: Path, mode: int) -> ValueError:
+    kind = next((words for test, words in FILE_KINDS if test(mode)), "not a regular file")
+    return ValueError(f"target image {path} is {kind}, not a regular file; give a regular image "
+                      "file (PNG, JPEG, ...), e.g. save what the pipe or device gives to a file "
+                      "first.")
+
+
+def _read_regular(path: Path) -> bytes:
+    """The bytes of the target image at `path`, a regular file; any other kind of file is
+    refused before it is read (reading a FIFO blocks until a writer comes, a device may never
+    end)."""
+    try:
+        mode = os.stat(path).st_mode
+        if stat.S_ISDIR(mode):
+            raise ValueError(f"target image {path} is a folder; give an image file.")
+        if not stat.S_ISREG(mode):
+            raise _not_regular(path, mode)
+        fd = os.open(path, TARGET_OPEN_FLAGS)
+    except FileNotFoundError:
+        raise ValueError(f"target image {path} does not exist; check the path.") from None
+    except OSError as err:
+        raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise _not_regular(path, mode)
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            return f.read()
+    except OSError as err:
+        raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
+    finally:
+        os.close(fd)
+
+
+def load_targets(paths: Sequence[Path], display_pixels: tuple[int, int] | None = None,
+                 options: TargetOptions | None = None) -> tuple[list[np.ndarray], list[str]]:
+    """Read and decode target images, each (3, H, W) float64 linear light; names are the file
+    stems, made unique. options: the --alpha, --frame and --fit of TargetOptions (default its
+    defaults); a fit other than stretch needs display_pixels (W, H)."""
+    options = options if options is not None else TargetOptions()
+    if options.fit != "stretch" and display_pixels is None:
+        raise ValueError(f"--fit {options.fit} needs the display's pixel count; give "
+                         "display_pixels.")
     images, names = [], []
     for path in paths:
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise ValueError(f"target image {path} does not exist; check the path.") from None
-        except IsADirectoryError:
-            raise ValueError(f"target image {path} is a folder; give an image file.") from None
-        except OSError as err:
-            raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
-        images.append(decode_image(data, str(path)))
+        image = decode_image(_read_regular(path), str(path), alpha=options.alpha,
+                             frame=options.frame)
+        if display_pixels is not None:
+            image = fit_target(image, display_pixels, options.fit)
+        images.append(image)
         name = "".join(c if c.isalnum() or c in "-_" else "_" for c in path.stem) or "target"
         while name in names:
             name += "_"

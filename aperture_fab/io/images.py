@@ -4,6 +4,11 @@ Inside the model colour is linear light in [0, 1]; files are sRGB (docs/design.m
 this module converts at the edge. An image array is float64 of shape (C, H, W): C = 3 (RGB) or 1
 (grey), row 0 the top, column 0 the left. This module does not touch the filesystem: it takes and
 returns bytes; the caller reads and writes files.
+
+A file is made a target by TargetOptions (the CLI's --alpha, --fit and --frame): transparent
+pixels are composited on black (warned) or white, or refused; an animation gives its first frame
+(warned) or the one asked for; a target of another aspect than the display's is stretched
+(warned), padded with black or cropped (fit_target). Float images are read by their range.
 """
 
 from __future__ import annotations
@@ -13,19 +18,26 @@ import struct
 import warnings
 import zlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 __all__ = [
+    "ALPHA_BACKGROUNDS",
     "MAX_IMAGE_PIXELS",
+    "TARGET_FITS",
+    "AlphaBackground",
     "PngBits",
     "ResampleKernel",
+    "TargetFit",
+    "TargetOptions",
     "TargetWarning",
     "check_target",
     "decode_image",
     "encode_png",
+    "fit_target",
     "is_grey",
     "linear_to_srgb",
     "prepare_targets",
@@ -36,6 +48,16 @@ __all__ = [
 ResampleKernel = Literal["box", "bilinear"]
 RESAMPLE_KERNELS: tuple[ResampleKernel, ...] = ("box", "bilinear")
 PngBits = Literal[8, 16]
+
+#: What transparent pixels are composited on, or "refuse" to refuse an image that has any.
+AlphaBackground = Literal["black", "white", "refuse"]
+ALPHA_BACKGROUNDS: tuple[AlphaBackground, ...] = ("black", "white", "refuse")
+#: Linear value of each background: black is "no light" on a display, white its full light.
+ALPHA_BACKGROUND_VALUES: dict[str, float] = {"black": 0.0, "white": 1.0}
+#: How a target of another aspect than the display's is made to fit: stretched (every pixel
+#: used, the picture distorted), padded with black (letterbox, centred) or cropped (centre).
+TargetFit = Literal["stretch", "pad", "crop"]
+TARGET_FITS: tuple[TargetFit, ...] = ("stretch", "pad", "crop")
 
 #: Largest image decode_image accepts by default (64 megapixels): larger files are almost surely
 #: a mistake, and a decompression bomb must be refused before it is decoded.
@@ -51,6 +73,12 @@ SRGB_GAMMA = 2.4
 #: Full scale of 8-bit and 16-bit samples.
 MAX_8BIT = 255
 MAX_16BIT = 65535
+#: A float image (Pillow mode "F", e.g. a 32-bit float TIFF) is read by its largest value: up to
+#: 1 it is sRGB in [0, 1] like every other file; up to 255 or 65535 it holds 8- or 16-bit codes
+#: as floats (scaled, with a warning). Each full scale, smallest first.
+FLOAT_FULL_SCALES = (1, MAX_8BIT, MAX_16BIT)
+#: Float values above a full scale by no more than this share are rounding (1.0000001), clipped.
+FLOAT_SLACK = 1e-4
 
 #: Smallest target side in pixels: a smaller one holds no picture to resample.
 MIN_TARGET_PIXELS = 8
@@ -60,7 +88,46 @@ ASPECT_TOLERANCE = 0.03
 
 
 class TargetWarning(UserWarning):
-    """A target that is used, but not as given (stretched to the display's aspect)."""
+    """A target that is used, but not as given: stretched to the display's aspect, its
+    transparency composited on black, one frame of an animation, float values rescaled."""
+
+
+@dataclass(frozen=True)
+class TargetOptions:
+    """How a target file becomes a target (the CLI's --alpha, --fit and --frame).
+
+    alpha: the background transparent pixels are composited on, or "refuse"; None: black, with
+        a TargetWarning (black is "no light" on a display, the image's own transparent areas).
+    fit: for a target of another aspect than the display's (fit_target); "stretch", the
+        default, is warned by check_target.
+    frame: the frame of an animation (or page of a multi-page file) to use, 0 the first; None:
+        the first, with a TargetWarning when there are several.
+    """
+
+    alpha: AlphaBackground | None = None
+    fit: TargetFit = "stretch"
+    frame: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.alpha is not None and self.alpha not in ALPHA_BACKGROUNDS:
+            raise ValueError(f"--alpha {self.alpha!r} is not allowed; choose one of "
+                             f"{', '.join(ALPHA_BACKGROUNDS)}.")
+        if self.fit not in TARGET_FITS:
+            raise ValueError(f"--fit {self.fit!r} is not allowed; choose one of "
+                             f"{', '.join(TARGET_FITS)}.")
+        if self.frame is not None and not (isinstance(self.frame, int)
+                                           and not isinstance(self.frame, bool)
+                                           and self.frame >= 0):
+            raise ValueError(f"--frame {self.frame!r} is not allowed; give a whole number from "
+                             "0 (the first frame).")
+
+    def changes(self) -> str | None:
+        """The options that give other targets than the defaults do, in words (e.g. "--fit
+        pad"), or None: a checkpoint records them so that --resume sees a change."""
+        chosen = [f"--alpha {self.alpha}" if self.alpha not in (None, "black") else "",
+                  f"--fit {self.fit}" if self.fit != "stretch" else "",
+                  f"--frame {self.frame}" if self.frame else ""]
+        return " ".join(c for c in chosen if c) or None
 
 
 #: Channels that differ by no more than this count as equal in is_grey.
@@ -138,17 +205,70 @@ def _decoding_table(full_scale: int) -> np.ndarray:
     return srgb_to_linear(np.arange(full_scale + 1) / full_scale)
 
 
-def _linear_rgb(image: Image.Image, name: str) -> np.ndarray:
-    """A loaded Pillow image to linear RGB (3, H, W) float64, alpha composited on black."""
+def _float_grey(values: np.ndarray, name: str) -> np.ndarray:
+    """A float image's values (H, W) to linear grey (H, W) float64, read by their range
+    (FLOAT_FULL_SCALES); NaN, infinite, negative or too large values are refused."""
+    bad = ~np.isfinite(values)
+    if np.any(bad):
+        raise ValueError(f"{name}: the float image holds NaN or infinite values ({int(bad.sum())} "
+                         f"pixels); allowed: finite values from 0 (0 to 1, 0 to {MAX_8BIT} or 0 "
+                         f"to {MAX_16BIT}). Fix those pixels, or re-export the image as a 16-bit "
+                         "PNG.")
+    low, high = float(values.min()), float(values.max())
+    if low < 0:
+        raise ValueError(f"{name}: the float image holds values from {low:g} to {high:g}; "
+                         f"allowed: 0 and above (light is not negative: 0 to 1, 0 to {MAX_8BIT} "
+                         f"or 0 to {MAX_16BIT}). Clip it at 0, or re-export the image as a 16-bit "
+                         "PNG.")
+    scale = next((s for s in FLOAT_FULL_SCALES if high <= s * (1 + FLOAT_SLACK)), None)
+    if scale is None:
+        raise ValueError(f"{name}: the float image holds values up to {high:g}; allowed: 0 to 1 "
+                         f"(sRGB), or 8- or 16-bit codes (up to {MAX_8BIT} or {MAX_16BIT}). Scale "
+                         "it into 0 to 1 (divide by its maximum), or re-export it as a 16-bit PNG.")
+    if scale > 1:
+        # 0..1 is the convention for float images; larger values are integer codes stored as
+        # floats (a common export), so the image is scaled rather than clipped to white.
+        warnings.warn(f"target image {name} is a float image with values from {low:g} to "
+                      f"{high:g}, above 1: read as codes from 0 to {scale} (divided by "
+                      f"{scale}). Give values from 0 to 1 (sRGB), or a PNG, to avoid the guess.",
+                      TargetWarning, stacklevel=4)
+    return srgb_to_linear(np.clip(values / scale, 0.0, 1.0))
+
+
+def _composite(linear: np.ndarray, coverage: np.ndarray, name: str,
+               alpha: AlphaBackground | None) -> np.ndarray:
+    """Linear RGB (3, H, W) with its alpha coverage (H, W) in [0, 1] composited on alpha's
+    background (None: black, warned); "refuse" refuses any pixel not fully opaque."""
+    partial = coverage < 1
+    if not np.any(partial):
+        return linear
+    share = f"{np.mean(partial):.1%} of its pixels"
+    if alpha == "refuse":
+        raise ValueError(f"{name}: the image is transparent or partly transparent in {share} "
+                         "(alpha below full); allowed with --alpha refuse: none. Flatten it onto "
+                         "a background in an image editor, or give --alpha black or --alpha "
+                         "white.")
+    if alpha is None:
+        warnings.warn(f"target image {name} is transparent in {share}; composited on black "
+                      "(no light on a display). Give --alpha white to composite on white, "
+                      "--alpha black to accept black, or --alpha refuse to stop.",
+                      TargetWarning, stacklevel=4)
+    background = ALPHA_BACKGROUND_VALUES[alpha or "black"]
+    # Alpha is coverage, a linear quantity: composite in linear light.
+    return linear * coverage + background * (1.0 - coverage)
+
+
+def _linear_rgb(image: Image.Image, name: str,
+                alpha: AlphaBackground | None = None) -> np.ndarray:
+    """A loaded Pillow image to linear RGB (3, H, W) float64, alpha composited on alpha's
+    background (_composite)."""
     if image.mode in WIDE_GREY_MODES:
         # 16-bit greyscale keeps its full precision; Pillow gives these as 0..65535 integers.
         codes = np.clip(np.asarray(image), 0, MAX_16BIT).astype(np.intp)
         return np.repeat(_decoding_table(MAX_16BIT)[codes][None], 3, axis=0)
     if image.mode == "F":
-        values = np.asarray(image, dtype=np.float64)
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"{name}: the float image holds NaN or infinite values. {REEXPORT}")
-        return np.repeat(srgb_to_linear(np.clip(values, 0.0, 1.0))[None], 3, axis=0)
+        grey = _float_grey(np.asarray(image, dtype=np.float64), name)
+        return np.repeat(grey[None], 3, axis=0)
     has_alpha = image.has_transparency_data
     try:
         # Palette, CMYK (Pillow's simple conversion), YCbCr, 1-bit, LA, ... all become 8-bit RGB(A).
@@ -159,19 +279,50 @@ def _linear_rgb(image: Image.Image, name: str) -> np.ndarray:
     codes = np.asarray(converted).transpose(2, 0, 1)
     linear = _decoding_table(MAX_8BIT)[codes[:3]]
     if has_alpha:
-        # Alpha is coverage, a linear quantity: composite over black in linear light.
-        linear = linear * (codes[3] / MAX_8BIT)
+        linear = _composite(linear, codes[3] / MAX_8BIT, name, alpha)
     return linear
 
 
-def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+def _choose_frame(opened: Image.Image, name: str, frame: int | None) -> None:
+    """Seek `opened` to `frame` (None: the first, warned when there are several)."""
+    try:
+        frames = int(getattr(opened, "n_frames", 1))
+    except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as error:
+        raise ValueError(f"{name}: its frames cannot be counted ({error}); the file is probably "
+                         f"truncated or corrupt. {REEXPORT}") from error
+    if frame is None:
+        if frames > 1:
+            warnings.warn(f"target image {name} is an animation (or a multi-page file) of "
+                          f"{frames} frames; the first (--frame 0) is used. Give --frame N (0 to "
+                          f"{frames - 1}) to choose one, or export one frame as PNG.",
+                          TargetWarning, stacklevel=3)
+        return
+    if frame >= frames:
+        raise ValueError(f"{name}: --frame {frame} is out of range; the file has {frames} "
+                         f"frame(s), numbered 0 to {frames - 1}. Give --frame from 0 to "
+                         f"{frames - 1}.")
+    if frame > 0:
+        try:
+            opened.seek(frame)
+        except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as error:
+            raise ValueError(f"{name}: frame {frame} cannot be read ({error}); the file is "
+                             f"probably truncated or corrupt. {REEXPORT}") from error
+
+
+def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS, *,
+                 alpha: AlphaBackground | None = None, frame: int | None = None) -> np.ndarray:
     """Decode an image file's bytes to linear-light RGB, float64 (3, H, W) in [0, 1], row 0 top.
 
     Reads what Pillow reads (PNG, JPEG, ...). sRGB is assumed (embedded ICC profiles are ignored);
-    the EXIF orientation is applied so the image is upright; transparent pixels are composited on
-    black. 16-bit greyscale keeps its precision; 16-bit colour PNG is read at 8 bits by Pillow.
-    `name` (usually the file name) is only used in error messages. Raises ValueError, naming
-    `name`, for empty, unreadable, truncated, zero-sized or larger than max_pixels images; the size
+    the EXIF orientation is applied so the image is upright. 16-bit greyscale keeps its
+    precision; 16-bit colour PNG is read at 8 bits by Pillow. A float image (e.g. a 32-bit float
+    TIFF) is read by its range: up to 1 as sRGB in [0, 1], up to 255 or 65535 as 8- or 16-bit
+    codes (scaled, with a TargetWarning); NaN, infinite, negative or larger values are refused.
+    alpha: transparent pixels are composited, in linear light, on "black" or "white", or
+    "refuse"d; None: on black with a TargetWarning. frame: the frame of an animation to use
+    (0 the first); None: the first, with a TargetWarning when there are several.
+    `name` (usually the file name) is only used in messages. Raises ValueError, naming `name`,
+    for empty, unreadable, truncated, zero-sized or larger than max_pixels images; the size
     is checked from the header, before decoding.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
@@ -179,6 +330,7 @@ def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS) -> 
     if not (isinstance(max_pixels, int) and not isinstance(max_pixels, bool) and max_pixels > 0):
         raise ValueError(f"max_pixels = {max_pixels!r} must be a positive whole number of pixels, "
                          f"e.g. {MAX_IMAGE_PIXELS}.")
+    TargetOptions(alpha=alpha, frame=frame)  # refuses a bad alpha or frame before decoding
     data = bytes(data)
     if len(data) == 0:
         raise ValueError(f"{name}: the file is empty (0 bytes). Check the path, or re-export the "
@@ -201,6 +353,7 @@ def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS) -> 
                                  f"{REEXPORT}")
             if width * height > max_pixels:
                 raise ValueError(_too_large_message(name, width, height, max_pixels))
+            _choose_frame(opened, name, frame)
             try:
                 # Truncated files raise here ("image file is truncated"): never load them anyway.
                 opened.load()
@@ -211,7 +364,7 @@ def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS) -> 
             except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as error:
                 raise ValueError(f"{name}: the image data cannot be decoded ({error}); the file "
                                  f"is probably truncated or corrupt. {REEXPORT}") from error
-            return np.ascontiguousarray(_linear_rgb(upright, name))
+            return np.ascontiguousarray(_linear_rgb(upright, name, alpha))
 
 
 def _check_image(name: str, image: np.ndarray) -> np.ndarray:
@@ -359,8 +512,40 @@ def check_target(image: np.ndarray, name: str, display_pixels: tuple[int, int]) 
     if abs(aspect / shown - 1) > ASPECT_TOLERANCE:
         warnings.warn(f"target image {name} is {width} x {height} pixels (aspect {aspect:.3g}) "
                       f"but the display is {display_pixels[0]} x {display_pixels[1]} (aspect "
-                      f"{shown:.3g}); it will be stretched to fit. Crop or pad it to the "
-                      "display's aspect to avoid that.", TargetWarning, stacklevel=3)
+                      f"{shown:.3g}); it will be stretched to fit (--fit stretch, the default). "
+                      "Give --fit pad to letterbox it with black or --fit crop to crop its "
+                      "centre, or crop or pad the file to the display's aspect.", TargetWarning,
+                      stacklevel=3)
+
+
+def fit_target(image: np.ndarray, display_pixels: tuple[int, int], fit: TargetFit) -> np.ndarray:
+    """A target (C, H, W) made to the display's aspect (display_pixels: (W, H)), float64:
+    "stretch" returns it as it is (prepare_targets stretches it, check_target warns); "pad"
+    centres it on black (letterbox or pillarbox); "crop" keeps its centre. Centred to within
+    half a pixel (an odd remainder goes to the bottom or right); its own pixels are kept, so
+    the only resampling is prepare_targets'."""
+    source = np.asarray(_check_image("fit_target image", image), dtype=np.float64)
+    if fit not in TARGET_FITS:
+        raise ValueError(f"--fit {fit!r} is not allowed; choose one of {', '.join(TARGET_FITS)}.")
+    if fit == "stretch":
+        return source
+    height, width = source.shape[1:]
+    shown = display_pixels[0] / display_pixels[1]
+    # Width and height at the display's aspect that hold the image (pad) or lie in it (crop).
+    wider = width / height > shown
+    if fit == "pad":
+        size = (width, round(width / shown)) if wider else (round(height * shown), height)
+    else:
+        size = (round(height * shown), height) if wider else (width, round(width / shown))
+    size = (max(1, size[0]), max(1, size[1]))
+    if fit == "crop":
+        left, top = (width - size[0]) // 2, (height - size[1]) // 2
+        return np.ascontiguousarray(source[:, top:top + size[1], left:left + size[0]])
+    # Black is no light on a display: the bars show nothing, as a letterbox should.
+    out = np.zeros((source.shape[0], size[1], size[0]))
+    left, top = (size[0] - width) // 2, (size[1] - height) // 2
+    out[:, top:top + height, left:left + width] = source
+    return out
 
 
 def prepare_targets(images: list[np.ndarray], view_pixels: tuple[int, int],

@@ -35,7 +35,7 @@ from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
-from aperture_fab.io.images import encode_png, prepare_targets, resample
+from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets, resample
 from aperture_fab.io.manifest import publish, staging
 from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.as_made import white_transmission
@@ -389,6 +389,7 @@ def recorded_config(config: Config, fabrication: FabricationSettings | None,
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
+               target_options: TargetOptions | None = None,
                fabrication: FabricationSettings | None = None,
                validation: ValidationSettings | None = None, resume: bool = False,
                progress: bool = True, command: Sequence[str] | None = None,
@@ -403,12 +404,16 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     on_staged: a testing seam, called with the staging folder after each group of files is
     staged (tests pause there to kill the process mid-export); None in normal use.
     stage: told each later stage as it starts, in words (the CLI prints them in a log, where
-    there are no progress bars).
+    there are no progress bars). target_options: how the files become targets (--alpha, --fit,
+    --frame; aperture_fab.io.images.TargetOptions).
     """
     announce = stage if stage is not None else (lambda _line: None)
     folder = output_folder(out)
-    images, names = load_targets(paths)
+    images, names = load_targets(paths, config.scene.display.pixels, target_options)
     inputs = input_digests(paths, config, fabrication)
+    chosen = None if target_options is None else target_options.changes()
+    if chosen is not None:  # other targets from the same files: --resume must see a change
+        inputs["the target options (--alpha, --fit, --frame)"] = _sha256(chosen.encode())
     checkpoint = folder / CHECKPOINT_NAME
     state = _resume_state(checkpoint, inputs, paths) if resume else None
     try:

@@ -16,7 +16,7 @@ import torch
 
 from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.io.files import load_targets, write_atomic
-from aperture_fab.io.images import encode_png, prepare_targets
+from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
@@ -91,6 +91,7 @@ def run_render(
     *,
     config_path: Path | None = None,
     target: Path | None = None,
+    target_options: TargetOptions | None = None,
     target_index: int = 0,
     eye_mm: tuple[float, float] | None = None,
     pupil_mm: float | None = None,
@@ -123,7 +124,7 @@ def run_render(
         check_design(design, config, config_path)
     view_target = on_display = None
     if target is not None:
-        images, _ = load_targets([target])
+        images, _ = load_targets([target], config.scene.display.pixels, target_options)
         channels = None if design is None else design.displays.shape[1]
         view_targets, on_displays = prepare_targets(
             images, config.scene.eye.view_pixels, config.scene.display.pixels, channels,
@@ -240,6 +241,7 @@ def run_display(
     part: Path,
     target: Path,
     *,
+    target_options: TargetOptions | None = None,
     eye_mm: tuple[float, float],
     pupil_mm: float,
     focus_mm: float | Literal["infinity"] | None = None,
@@ -279,7 +281,7 @@ def run_display(
     design = design_beside(config_path, part, kind)
     if design is not None:
         check_design(design, config, config_path)
-    images, _ = load_targets([target])
+    images, _ = load_targets([target], scene.display.pixels, target_options)
     view_targets, on_displays = prepare_targets(
         images, scene.eye.view_pixels, scene.display.pixels,
         None if design is None else design.displays.shape[1], names=[str(target)])

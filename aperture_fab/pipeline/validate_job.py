@@ -31,7 +31,7 @@ from aperture_fab.fabrication.part import (
 from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS
-from aperture_fab.io.images import encode_png, prepare_targets
+from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import publish, staging
 from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.pipeline.design_job import FIT_SHARE, MIN_FIT_ITERATIONS
@@ -147,6 +147,7 @@ def run_validate(
     part: Path,
     targets: Sequence[Path],
     *,
+    target_options: TargetOptions | None = None,
     config_path: Path | None = None,
     out: Path | None = None,
     process: str | None = None,
@@ -178,7 +179,7 @@ def run_validate(
     fabrication = fabrication_settings(config.extra, {"process": process})
     settings = validation_settings(config.extra, {"tolerance_samples": tolerance_samples,
                                                   "mesh_samples": mesh_samples})
-    images, names = load_targets(targets)
+    images, names = load_targets(targets, config.scene.display.pixels, target_options)
     design = design_beside(config_path, part, kind)
     if design is not None:
         check_design(design, config, config_path)
