@@ -6,7 +6,7 @@ import argparse
 import errno
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,19 +19,30 @@ EXIT_FAILED = 1  # the tool judged and refused: the process cannot make the plat
 EXIT_USAGE = 2  # argparse's own status for a bad command line
 EXIT_BAD_INPUT = 3
 EXIT_CANNOT_WRITE = 4
+# The part's files and its report are written either way (the user needs the report to see why);
+# only the status says that the report's overall verdict refuses the part.
+EXIT_REPORT_FAIL = 5  # the report says FAIL: do not make the part as it is
+EXIT_REPORT_WARN = 6  # with --strict only: the report says WARN
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 
 EXIT_CODES_HELP = f"""\
 exit status:
-  {EXIT_OK}    success
+  {EXIT_OK}    success; for `design` and `validate`: the part's report says PASS, or WARN
+       without --strict
   {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
        anyway), or the optimization diverged; for `sweep`, some points failed
   {EXIT_USAGE}    usage error: an unknown command or flag, or a flag's value of the wrong type
   {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
   {EXIT_CANNOT_WRITE}    a file could not be written or read (no permission, disk full, read-only)
+  {EXIT_REPORT_FAIL}    `design`, `validate`: the part and its report were written, but the report
+       says FAIL: do not make the part as it is (report.html says why and what to change)
+  {EXIT_REPORT_WARN}    `design`, `validate` with --strict: the report says WARN (usable, with
+       reservations); without --strict a WARN exits {EXIT_OK}
   {EXIT_INTERRUPTED}  interrupted (Ctrl-C); `design` saves a checkpoint first (--resume goes on)
 
--q/--quiet prints only errors and the final one-line result; -v/--verbose adds tracebacks to
+-q/--quiet prints only errors and the final one-line result, which is also the last line
+without it; for `design` and `validate` it starts with the report's verdict (PASS, WARN, FAIL;
+NOTE when nothing was judged, NOT VALIDATED with --no-validate). -v/--verbose adds tracebacks to
 errors and the time of each stage. Progress bars appear only when stderr is a terminal; in a log
 each stage is one plain line instead.
 """
@@ -60,6 +71,19 @@ TEMP_NAME = re.compile(r"\.([^/\\]+)\.[0-9a-f]{12}\.tmp$")
 #: Warnings raised from this package's files are the tool's own (printed as one line).
 PACKAGE_DIR = str(Path(__file__).resolve().parent)
 
+#: What the report's overall verdict says of the part, in the one-line result.
+VERDICT_WORDS = {
+    "fail": "do not make this part as it is",
+    "warn": "usable, with reservations",
+    "pass": "every check passed",
+    "info": "no check was judged",
+}
+#: A sentence ends at . ! or ? before a capital: not inside "0.92 %" or "(e.g. the".
+SENTENCE_END = re.compile(r"(?<=[.!?])\s+(?=[A-Z])")
+#: The one-line result quotes the deciding verdict's first sentence up to this many characters, a
+#: guard against a text without a sentence end; report.html holds the whole text and the fix.
+REASON_CHARS = 400
+
 
 @dataclass(frozen=True)
 class Output:
@@ -78,6 +102,10 @@ class Output:
     def progress(self) -> bool:
         """Whether to draw progress bars (tqdm writes carriage returns, unreadable in a log)."""
         return self.terminal and not self.quiet
+
+    def result(self, line: str) -> None:
+        """The final one-line result: the last line printed, and the only one with --quiet."""
+        print(line)
 
     def detail(self, line: str) -> None:
         """A result line beyond the final one (tables, notes): not with --quiet."""
@@ -218,11 +246,13 @@ def _load_config(args: argparse.Namespace) -> Any:
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from aperture_fab.config.presets import PRESETS, preset_summary
+    from aperture_fab.config.presets import DEFAULT_PRESET, PRESETS, preset_summary
 
     for name in PRESETS:
         print(preset_summary(name))
         print()
+    args.output.result(f"{len(PRESETS)} presets: {', '.join(PRESETS)}; start from one with "
+                       f"--preset NAME (default {DEFAULT_PRESET})")
     return 0
 
 
@@ -274,6 +304,14 @@ def _target_options(args: argparse.Namespace) -> Any:
     from aperture_fab.io.images import TargetOptions
 
     return TargetOptions(alpha=args.alpha, fit=args.fit, frame=args.frame)
+
+
+def _add_strict_flag(parser: Any) -> None:
+    """--strict, on the commands that judge a part (design, validate)."""
+    parser.add_argument("--strict", action="store_true",
+                        help=f"exit with status {EXIT_REPORT_WARN} when the report says WARN "
+                        f"(a FAIL exits {EXIT_REPORT_FAIL} always); the files are written either "
+                        "way")
 
 
 def _fabrication(args: argparse.Namespace, extra: Any) -> Any:
@@ -328,6 +366,8 @@ def _cmd_processes(args: argparse.Namespace) -> int:
     for process in PROCESSES.values():
         print(process_summary(process))
         print()
+    args.output.result(f"{len(PROCESSES)} processes: {', '.join(PROCESSES)}; choose one with "
+                       "--process NAME")
     return 0
 
 
@@ -370,8 +410,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     else:
         written = write_part(folder, part, fabrication, formats, progress=args.output.progress)
     _report_forced(args.output, part, config, fabrication)
-    print(f"{part.layout.count} holes, process {fabrication.process.name}: "
-          + ", ".join(str(p) for p in written))
+    args.output.result(f"wrote {part.layout.count} holes, process {fabrication.process.name}: "
+                       + ", ".join(str(p) for p in written))
     return 0
 
 
@@ -395,7 +435,25 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
             "Not judged over the eye distribution (--no-validate): the PSNR below is for the "
             "nominal eye point only.")
         print(textwrap.fill("eye distribution: " + why, 100, subsequent_indent="  "))
-        return
+    else:
+        _print_eye_table(headline, names)
+    # The part as made against the best regular array, whatever its level; then the report's
+    # other judged findings that need action (light, contrast, tolerances...), which the final
+    # line's verdict may name even when the eye distribution was not judged.
+    for other in verdicts:
+        if other["topic"] == MADE_TOPIC or (other["level"] in ("fail", "warn")
+                                            and other["topic"] != "eye distribution"):
+            print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
+                                f"{other['text']}", 100, subsequent_indent="  "))
+
+
+def _print_eye_table(headline: dict[str, Any], names: Sequence[str]) -> None:
+    """PSNR p10 / median / p90 over the eye distribution per variant and target, and its
+    verdict."""
+    import textwrap
+
+    from aperture_fab.validation.report_html import LEVEL_WORDS
+
     variants = headline["variants"]
     print(f"PSNR over the eye distribution (dB), p10 / median / p90, {headline['states']} "
           "states:")
@@ -412,13 +470,55 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
     if verdict is not None:
         print(textwrap.fill(f"eye distribution: {LEVEL_WORDS[verdict['level']]}: "
                             f"{verdict['text']}", 100, subsequent_indent="  "))
-    # The part as made against the best regular array, whatever its level; then the report's
-    # other judged findings that need action (light, contrast, tolerances...).
-    for other in verdicts:
-        if other["topic"] == MADE_TOPIC or (other["level"] in ("fail", "warn")
-                                            and other["topic"] != "eye distribution"):
-            print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
-                                f"{other['text']}", 100, subsequent_indent="  "))
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """A report's overall verdict, for the exit status and the one-line result.
+
+    level: fail, warn, pass or info: the report page's headline (report_html.overall_level, its
+    worst judged verdict), so the terminal and the page always agree. deciding: the first
+    verdict at that level (the report lists the most important first), None for info.
+    count: how many verdicts are at that level.
+    """
+
+    level: str
+    deciding: Mapping[str, str] | None
+    count: int
+
+    @classmethod
+    def of(cls, verdicts: Sequence[Mapping[str, str]]) -> Judgement:
+        from aperture_fab.validation.report import Verdict
+        from aperture_fab.validation.report_html import overall_level
+
+        level = overall_level([Verdict(v["topic"], v["level"], v["text"]) for v in verdicts])
+        at_level = [v for v in verdicts if v["level"] == level]
+        return cls(level, at_level[0] if level != "info" else None, len(at_level))
+
+    def status(self, strict: bool) -> int:
+        """EXIT_REPORT_FAIL for FAIL; EXIT_REPORT_WARN for WARN with --strict; else EXIT_OK."""
+        if self.level == "fail":
+            return EXIT_REPORT_FAIL
+        return EXIT_REPORT_WARN if self.level == "warn" and strict else EXIT_OK
+
+    def line(self, wrote: str, report: Path, strict: bool) -> str:
+        """The one-line result: the verdict, what was written, where the report is and, for
+        FAIL or WARN, the deciding check's topic and the first sentence of its reason."""
+        from aperture_fab.validation.verdicts import LEVEL_WORDS
+
+        words = VERDICT_WORDS[self.level]
+        if self.level == "warn" and strict:
+            words += f" (--strict refuses it: exit status {EXIT_REPORT_WARN})"
+        text = f"{LEVEL_WORDS[self.level]}: {wrote} - {report} says {words}"
+        if self.deciding is None or self.level == "pass":
+            return text
+        reason = " ".join(SENTENCE_END.split(self.deciding["text"].strip(), 1)[0].split())
+        if len(reason) > REASON_CHARS:
+            reason = reason[:REASON_CHARS].rsplit(" ", 1)[0] + " ..."
+        topic = self.deciding["topic"]
+        if self.count > 1:
+            topic = f"{self.count} checks {self.level}, first {topic}"
+        return f"{text}; {topic}: {reason}"
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
@@ -449,9 +549,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
         output.interrupted(f"at iteration {stop.state['iteration']} (Ctrl-C); checkpoint saved in "
                            f"{folder}. Continue with the same command and --resume.")
         return EXIT_INTERRUPTED
-    m = result.metrics
-    print(f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
-          f"stopped: {result.design.stopped})")
+    wrote = (f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
+             f"stopped: {result.design.stopped})")
     output.timings(result.timings_s)
     if named is not None and args.out.name != named.file_name:
         # A design folder's files have fixed names (validate and export find them by name).
@@ -460,31 +559,47 @@ def _cmd_design(args: argparse.Namespace) -> int:
                     f"{folder / 'design.npz'} --out {args.out}`.")
     if result.part is not None:
         _report_forced(output, result.part, config, fabrication)
-    if output.quiet:
+    if not output.quiet:
+        _print_design_tables(result, fabrication, validated=validation is not None)
+    if validation is None:  # no report: say so rather than let "wrote" read as a pass
+        targets = " ".join(str(t) for t in args.targets)
+        output.result(f"NOT VALIDATED: {wrote} - --no-validate: no report and no verdict; "
+                      f"judge the part with `aperture-fab validate {folder / 'plate.stl'} "
+                      f"{targets}`")
         return EXIT_OK
-    _print_eye_distribution(m, result.names, validated=validation is not None,
-                            verdicts=result.verdicts)
+    judgement = Judgement.of(result.verdicts)
+    output.result(judgement.line(wrote, folder / "report.html", args.strict))
+    return judgement.status(args.strict)
+
+
+def _print_design_tables(result: Any, fabrication: Any, *, validated: bool) -> None:
+    """design's tables: the verdicts (as validate prints them), the nominal PSNR and the part."""
+    m = result.metrics
+    _print_eye_distribution(m, result.names, validated=validated, verdicts=result.verdicts)
     nominal = [v for v in m if v != "eye_distribution"]
     print("PSNR after gain (dB), nominal eye position:")
     header = f"  {'target':<16}" + "".join(f"{v:>18}" for v in nominal)
     print(header)
     for t, name in enumerate(result.names):
         print(f"  {name:<16}" + "".join(f"{m[v]['psnr_db'][t]:>18.2f}" for v in nominal))
-    if result.part is not None:
-        layout = result.part.layout
-        if fabrication.force:  # nothing was resolved: the warning above counts what breaks
-            print(f"part: {layout.count} holes as designed (--force); "
-                  f"{result.part.report.face_count} triangles, watertight")
-            return EXIT_OK
-        print(f"part: {layout.count} holes, {len(layout.violations)} rule violation(s) resolved; "
+    if result.part is None:
+        return
+    layout = result.part.layout
+    if fabrication.force:  # nothing was resolved: the warning above counts what breaks
+        print(f"part: {layout.count} holes as designed (--force); "
               f"{result.part.report.face_count} triangles, watertight")
-        for v in layout.violations[:10]:
-            print(f"  {v.rule}: {v.resolution}")
-    return EXIT_OK
+        return
+    print(f"part: {layout.count} holes, {len(layout.violations)} rule violation(s) resolved; "
+          f"{result.part.report.face_count} triangles, watertight")
+    for v in layout.violations[:10]:
+        print(f"  {v.rule}: {v.resolution}")
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    import json
+
     from aperture_fab.pipeline.validate_job import run_validate
+    from aperture_fab.validation.report import eye_headline
 
     result = run_validate(args.part, args.targets, config_path=args.config, out=args.out,
                           target_options=_target_options(args),
@@ -494,22 +609,28 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                           stage=args.output.stage, command=args.command_line)
     metrics = result.validation.metrics
     layout = result.part.layout
-    print(f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "
-          f"display content {result.display_source})")
-    args.output.timings(result.timings_s)
-    if args.output.quiet:
-        return EXIT_OK
-    print("PSNR after gain (dB), nominal eye position:")
-    print(f"  {'variant':<22}" + "".join(f"{name:>16}" for name in result.names))
-    for variant, per_target in metrics.items():
-        print(f"  {variant:<22}" + "".join(f"{per_target[name]['psnr_db']:>16.2f}"
-                                           for name in result.names))
-    if layout.violations:
-        print(f"{len(layout.violations)} process rule violation(s):")
-        for v in layout.violations[:10]:
-            print(f"  {v.rule}" + ("" if v.cell is None else f" cell {v.cell}")
-                  + f": {v.resolution}")
-    return EXIT_OK
+    # The verdicts as published: the exit status follows the report the user will read.
+    report = json.loads((result.folder / "report.json").read_text())
+    output: Output = args.output
+    output.timings(result.timings_s)
+    if not output.quiet:
+        _print_eye_distribution({"eye_distribution": eye_headline(report)}, result.names,
+                                validated=True, verdicts=report["verdicts"])
+        print("PSNR after gain (dB), nominal eye position:")
+        print(f"  {'variant':<22}" + "".join(f"{name:>16}" for name in result.names))
+        for variant, per_target in metrics.items():
+            print(f"  {variant:<22}" + "".join(f"{per_target[name]['psnr_db']:>16.2f}"
+                                               for name in result.names))
+        if layout.violations:
+            print(f"{len(layout.violations)} process rule violation(s):")
+            for v in layout.violations[:10]:
+                print(f"  {v.rule}" + ("" if v.cell is None else f" cell {v.cell}")
+                      + f": {v.resolution}")
+    judgement = Judgement.of(report["verdicts"])
+    wrote = (f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "
+             f"display content {result.display_source})")
+    output.result(judgement.line(wrote, result.folder / "report.html", args.strict))
+    return judgement.status(args.strict)
 
 
 def _cmd_assembly(args: argparse.Namespace) -> int:
@@ -562,11 +683,11 @@ def _cmd_display(args: argparse.Namespace) -> int:
     x, y = frame.eye_mm
     height, width = frame.display.shape[1:]
     focus_text = "infinity" if frame.focus_mm is None else f"{frame.focus_mm:g} mm"
-    print(f"wrote {frame.path}: {width} x {height} display frame for the eye at ({x:g}, {y:g}) "
-          f"mm, pupil {frame.pupil_mm:g} mm, focus {focus_text}")
     args.output.detail(f"PSNR after gain: {frame.start_psnr_db:.2f} dB untracked -> "
                        f"{frame.psnr_db:.2f} dB tracked ({frame.iterations} iterations, solved "
                        f"in {frame.solve_s:.2f} s)")
+    args.output.result(f"wrote {frame.path}: {width} x {height} display frame for the eye at "
+                       f"({x:g}, {y:g}) mm, pupil {frame.pupil_mm:g} mm, focus {focus_text}")
     return 0
 
 
@@ -645,6 +766,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_flags(p)
     _add_fabrication_flags(p)
     _add_validation_flags(p)
+    _add_strict_flag(p)
     _add_target_flags(p)
     p.set_defaults(func=_cmd_design)
 
@@ -686,6 +808,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mesh-samples", type=int, metavar="N",
                    help="rays per (view pixel, hole) pair when re-tracing the mesh (0 skips it)")
     _add_target_flags(p)
+    _add_strict_flag(p)
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("render", help="the view through a part for an eye position",
@@ -823,6 +946,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)  # a usage error exits with EXIT_USAGE (argparse's 2)
+    if getattr(args, "strict", False) and getattr(args, "no_validate", False):
+        # --strict judges the report, which --no-validate does not write: one flag is a mistake.
+        parser.error("--strict exits on the report's WARN, but --no-validate writes no report: "
+                     "drop one of them.")
     # Recorded in an output folder's manifest.json: how to re-run what wrote it.
     args.command_line = ["aperture-fab", *(sys.argv[1:] if argv is None else argv)]
     output = Output(quiet=bool(getattr(args, "quiet", False)),

@@ -9,7 +9,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_FAILED, main
+from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_REPORT_FAIL, main
 from aperture_fab.config.config import resolve
 from aperture_fab.fabrication.mesh import check_mesh, mesh_volume_mm3
 from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
@@ -71,7 +71,7 @@ def test_force_writes_with_violations(tmp_path):
     flags = ["design", str(target), "--out", str(out / "plate.stl"), "--quiet", "--process",
              "fdm", "--force", "--cells", "16", "16", "--view-pixels", "12", "12",
              "--iterations", "2", "--device", "cpu", "--thickness-mm", "0.1"]
-    assert main(flags) == 0
+    assert main(flags) in (EXIT_OK, EXIT_REPORT_FAIL)
     import json
 
     summary = json.loads((out / "design.json").read_text())
@@ -88,7 +88,7 @@ def test_design_writes_every_part_file_and_export_rebuilds(tmp_path):
     flags = ["design", str(target), "--out", str(out / "plate.stl"), "--quiet", "--process",
              "photomask", "--cells", "16", "16", "--view-pixels", "12", "12",
              "--iterations", "2", "--device", "cpu", "--thickness-mm", "0.1"]
-    assert main(flags) == 0
+    assert main(flags) in (EXIT_OK, EXIT_REPORT_FAIL)
     for name in ("plate.stl", "plate.3mf", "holes.csv", "plate.dxf", "plate.svg"):
         assert (out / name).stat().st_size > 0, name
     with zipfile.ZipFile(io.BytesIO((out / "plate.3mf").read_bytes())) as z:
