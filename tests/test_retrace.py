@@ -32,6 +32,7 @@ from aperture_fab.validation.retrace import (
     REPLICATES,
     TracedView,
     _cap_angle,
+    _clear_radius,
     _concentric_disk,
     _disk_neighbours,
     _Disks,
@@ -243,7 +244,7 @@ def overlapping_holes_mesh() -> tuple[Scene, PlateMesh]:
 
 def test_overlapping_hole_disks_are_counted_once():
     scene, mesh = overlapping_holes_mesh()
-    assert _Disks.of(mesh_hole_loops(mesh)).neighbours.shape[1] > 0
+    assert _Disks.of(mesh_hole_loops(mesh), mesh).neighbours.shape[1] > 0
     display = np.kron(np.random.default_rng(3).random((1, 6, 6)), np.ones((8, 8)))
     holes = trace_mesh_view(mesh, scene, display, samples_per_pixel=64, seed=1)
     pupil = trace_mesh_view(mesh, scene, display, samples_per_pixel=4096, seed=2,
@@ -445,6 +446,70 @@ def test_a_mesh_that_is_not_a_plate_needs_pupil_sampling():
     with pytest.raises(ValueError, match="sampling='pupil' traces any mesh"):
         trace_mesh_view(cut, scene, display)
     assert trace_mesh_view(cut, scene, display, samples_per_pixel=8, sampling="pupil").view.any()
+
+
+# -- clear cylinders: rays decided without a cast ------------------------------------------------
+
+
+def clear_radius_of(mesh: PlateMesh) -> tuple[np.ndarray, Any]:
+    """Each hole's clear-cylinder radius (mm), as trace_mesh_view finds it, and the loops."""
+    loops = mesh_hole_loops(mesh)
+    z = mesh.vertices[:, 2]
+    low = loops.bottom_centroid_mm + loops.axes * float(z.min())
+    cap = np.maximum(loops.top_circum_radius_mm, loops.bottom_circum_radius_mm)
+    return _clear_radius(mesh, low, loops.top_centroid_mm, (float(z.min()), float(z.max())),
+                         cap), loops
+
+
+@pytest.mark.parametrize("axis", ["straight", "chief_ray"])
+def test_a_prism_holes_clear_radius_is_its_inscribed_radius(axis):
+    """build_mesh's holes are regular polygons swept along their axis: no triangle comes
+    nearer the axis than the polygon's inscribed radius, and the walls reach it."""
+    _, part, _, _ = random_case(axis)
+    rho, loops = clear_radius_of(written_mesh(part))
+    inscribed = loops.top_circum_radius_mm * np.cos(np.pi / loops.segments)
+    np.testing.assert_allclose(rho, inscribed, rtol=1e-4)
+
+
+def test_a_stray_triangle_in_a_hole_narrows_its_clear_cylinder():
+    """Any triangle of the mesh counts, not only the hole's wall: a sliver standing in hole 0,
+    0.3 of its radius from the axis, brings rho down to 0.3 r there and nowhere else."""
+    _, part, _, _ = random_case("straight")
+    mesh = written_mesh(part)
+    before, loops = clear_radius_of(mesh)
+    centre, radius = loops.top_centroid_mm[0], loops.top_area_radius_mm[0]
+    t = loops.thickness_mm
+    corners = np.array([[centre[0] + 0.3 * radius, centre[1] - 0.2 * radius, 0.3 * t],
+                        [centre[0] + 0.3 * radius, centre[1] + 0.2 * radius, 0.3 * t],
+                        [centre[0] + 0.5 * radius, centre[1], 0.6 * t]])
+    stray = PlateMesh(np.concatenate([mesh.vertices, corners]),
+                      np.concatenate([mesh.faces, len(mesh.vertices) + np.array([[0, 1, 2]])]))
+    after, _ = clear_radius_of(stray)
+    assert after[0] == pytest.approx(0.3 * radius, rel=1e-9)
+    np.testing.assert_array_equal(after[1:], before[1:])
+
+
+@pytest.mark.parametrize("case", ["chief_ray", "thin"])
+def test_clear_cylinders_decide_rays_as_embree_does(case, monkeypatch):
+    """The rays passed through a clear cylinder without a cast are rays Embree finds clear:
+    with every ray cast (a margin too wide for any cylinder) the view is the same, to
+    rounding, and so are the rays counted."""
+    from aperture_fab.validation import retrace
+
+    if case == "thin":  # a 5 um plate (the photomask default): nearly every ray is clear
+        scene = make_scene(thickness=0.005, cells=20)
+        a = np.random.default_rng(2).uniform(0.05, 0.5, (20, 20))
+        part = make_part(a, scene, FabricationSettings(PROCESS))
+        display = np.random.default_rng(4).random((3, 48, 48))
+    else:
+        scene, part, _, display = random_case(case)
+    mesh = written_mesh(part)
+    fast = trace_mesh_view(mesh, scene, display, samples_per_pixel=16, seed=5)
+    monkeypatch.setattr(retrace, "CLEAR_RTOL", 1.0)
+    cast = trace_mesh_view(mesh, scene, display, samples_per_pixel=16, seed=5)
+    assert fast.rays_cast == cast.rays_cast > 0
+    np.testing.assert_allclose(fast.view, cast.view, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(fast.stderr, cast.stderr, rtol=1e-9, atol=1e-15)
 
 
 # -- the lens sampler -----------------------------------------------------------------------------

@@ -164,8 +164,11 @@ def _match_walls(mesh: PlateMesh, bottom: _FaceLoops, top: _FaceLoops) -> np.nda
     up = (lt[:, 0] >= 0) & (lb[:, 1] >= 0)
     links = np.concatenate([np.stack([lb[down, 0], lt[down, 1]], axis=1),
                             np.stack([lb[up, 1], lt[up, 0]], axis=1)])
-    links = np.unique(links, axis=0)
     bottom_count, top_count = len(bottom.area), len(top.area)
+    # Unique (bottom, top) pairs, by one integer key each (np.unique(axis=0) sorts rows as
+    # structured records, ~10 x slower); same rows, same order.
+    key = np.unique(links[:, 0] * top_count + links[:, 1])
+    links = np.stack([key // top_count, key % top_count], axis=1)
     for face, column, count, loops in (("bottom", 0, bottom_count, bottom),
                                        ("top", 1, top_count, top)):
         partners = np.bincount(links[:, column], minlength=count)

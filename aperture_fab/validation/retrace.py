@@ -22,6 +22,21 @@ and lands short of its straight continuation; a striped RGB display lights each 
 its stripe (a third of the pixel, at 3 times the value); falloff weighs the radiance by cos^k of
 the ray's angle in air.
 
+Whether a ray meets the mesh is decided exactly for every ray that could carry light (one that
+lands on a lit pixel inside the outline): Embree casts it, unless hole sampling (below) finds it
+inside its hole's clear cylinder, where it meets nothing without a cast. A hole's clear cylinder
+is the oblique cylinder about the line through its two loop centroids
+(aperture_fab.fabrication.mesh_holes), over the mesh's whole z range, of the largest radius rho
+that no triangle of the mesh enters, whichever hole or face it belongs to: each triangle near
+the hole is sheared along that line (x -> x - axis(z)), and rho is the least distance of the
+sheared triangles' xy projections from the axis (at most the loops' circumscribed radius). A ray
+that crosses the mesh's lowest and highest planes within rho - margin of the line stays within
+it in between (the sheared ray is a straight segment between two points of one disk), so it
+meets no triangle: it passes. The margin (CLEAR_RTOL of the mesh's size, at least 50 float32
+steps of Embree's frame) keeps those rays well clear of where Embree's rounding could find a
+hit, so a cast would say the same. For a polygonal hole rho is its inscribed radius: only rays
+near a wall are cast (5 % of them through the 16- to 24-sided holes of the default plate).
+
 A view pixel's value is the mean over its box of view directions B and the pupil disk P (radius
 R, uniform weights): V = (1 / |B|) int_B dv (1 / (pi R^2)) int_P du f(v, u), f = pass x radiance.
 
@@ -57,8 +72,9 @@ For each (view pixel, hole) pair whose top disk reaches the footprint of some v 
 box of footprint centres grown by beta R), v is drawn stratified over B as above and x_t
 uniformly over the pair's lens (exactly, by inverting the lens's area along its axis; the unit
 square's strata are mapped onto the lens, paired with the box's by a random permutation), the
-pupil point u = (x_t - c - s_t v) / beta found (no ray when |u| > R), and the ray cast against
-the whole mesh as before. A sample's weight is |lens| / (n pi (beta R)^2), n samples per pair
+pupil point u = (x_t - c - s_t v) / beta found (no ray when |u| > R), and the ray decided against
+the whole mesh as above (its hole's clear cylinder, else an Embree cast). A sample's weight is
+|lens| / (n pi (beta R)^2), n samples per pair
 and replicate, and the pixel is the sum over its pairs. samples_per_pixel is then the rays per
 (view pixel, hole) pair. For the same error it casts ~15 x fewer rays than "pupil" through a
 near-eye plate of 24 % open area (12 per pair: ~38 dB against the model), more as the open area
@@ -66,20 +82,31 @@ shrinks.
 
 Both: REPLICATES independent estimates per view pixel; the value is their mean and its standard
 error their standard deviation / sqrt(REPLICATES), an unbiased variance estimate.
+
+The per-ray arithmetic (a ray from its uniforms, the lens map, the landing, the outline and
+clear-cylinder tests, the radiance and the sums) runs in Numba kernels (parallel over pairs;
+compiled on first use and cached on disk, like aperture_fab.optics.kernels), a chunk of pairs or
+rays at a time. The uniforms come from numpy's generator (default_rng(seed)) in one fixed order
+whatever the chunking, the next chunk's drawn on a second thread while Embree casts this one's
+rays, so a seed gives the same view.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.mesh_holes import HoleLoops, mesh_hole_loops
-from aperture_fab.optics.scene import Display, Scene
+from aperture_fab.optics.scene import Scene
 
 __all__ = ["DEFAULT_SAMPLES", "REPLICATES", "SAMPLINGS", "Sampling", "TracedView",
            "trace_mesh_view"]
@@ -89,8 +116,10 @@ SAMPLINGS: tuple[Sampling, ...] = ("holes", "pupil")
 #: Default samples_per_pixel: rays per (view pixel, hole) pair ("holes"), per view pixel
 #: ("pupil").
 DEFAULT_SAMPLES: dict[Sampling, int] = {"holes": 12, "pupil": 256}
-#: With samples_per_pixel None, hole sampling spends about this many rays (~20 s on one core)
-#: and at most MOST_SAMPLES per pair, never fewer than DEFAULT_SAMPLES["holes"].
+#: With samples_per_pixel None, hole sampling spends about this many rays (~3 s on 2 cores for
+#: the default 0.005 mm photomask plate, whose rays nearly all pass through clear cylinders;
+#: more for a thick plate, whose rays near a wall are cast) and at most MOST_SAMPLES per pair,
+#: never fewer than DEFAULT_SAMPLES["holes"].
 RAY_BUDGET = 30_000_000
 MOST_SAMPLES = 256
 #: Independent estimates per view pixel; their spread gives the standard error (REPLICATES - 1
@@ -103,10 +132,19 @@ RANDOM_PER_SAMPLE = 5
 OUTLINE_RTOL = 1e-9
 #: Relative margin on a hole's circumscribed radius, so its loop's vertices lie inside the disk.
 DISK_MARGIN = 1e-6
-#: Newton steps solving for a cap's angle (from the series start, 3 reach float64 precision).
-NEWTON_STEPS = 3
+#: Intervals of the table that inverts a cap's area (_cap_theta): theta and d theta / d t at
+#: equal steps of t = cbrt(1.5 area) (theta ~ t near 0), interpolated by cubic Hermite
+#: polynomials: the area theta - sin theta cos theta is met within 3e-15 (float64 rounding).
+CAP_TABLE = 8192
 #: The mesh is scaled to a box this size before Embree's float32 sees it.
 EMBREE_BOX = 100.0
+#: A ray passes without a cast only this share of the mesh's largest extent inside a hole's
+#: clear cylinder: 4e-4 in Embree's frame (EMBREE_BOX), at least 50 float32 steps (7.6e-6 below
+#: 128) there, far above its rounding of the vertices and the rays.
+CLEAR_RTOL = 4e-6
+#: Pairs per task of the parallel hole kernel, rays per task of the shading kernel.
+PAIR_BLOCK = 256
+RAY_BLOCK = 4096
 
 
 @dataclass(frozen=True)
@@ -118,7 +156,8 @@ class TracedView:
     samples_per_pixel: rays per view pixel ("pupil") or per (view pixel, hole) pair ("holes"),
         the request rounded up to a whole number per replicate.
     sampling: how the rays were drawn (module docstring).
-    rays_cast: rays cast against the mesh in all (those that could carry light).
+    rays_cast: rays decided against the mesh in all (those that could carry light: cast with
+        Embree, or passed through a hole's clear cylinder).
     pairs: (view pixel, hole) pairs traced ("holes"; 0 for "pupil").
     """
 
@@ -190,15 +229,6 @@ def _outline_hull(xy: np.ndarray) -> np.ndarray:
     return np.array(lower[:-1] + upper[:-1])
 
 
-def _inside(hull: np.ndarray, x: np.ndarray, y: np.ndarray, tol_mm: float) -> np.ndarray:
-    """Whether points (x, y) lie in the convex counter-clockwise polygon `hull` (edges count)."""
-    inside = np.ones(x.shape, dtype=bool)
-    for a, b in zip(hull, np.roll(hull, -1, axis=0), strict=True):
-        length = math.hypot(b[0] - a[0], b[1] - a[1])
-        inside &= (b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0]) >= -tol_mm * length
-    return inside
-
-
 def _strata(n: int) -> tuple[np.ndarray, np.ndarray]:
     """n equal-area strata of the unit square: lower corners (n, 2) and sizes (n, 2).
 
@@ -215,15 +245,492 @@ def _strata(n: int) -> tuple[np.ndarray, np.ndarray]:
     return corner, size
 
 
+# -- Numba kernels: the per-ray arithmetic ---------------------------------------------------------
+
+#: Fast-math flags that keep NaN and infinity semantics, as aperture_fab.optics.kernels: the
+#: geometry's tests all keep margins far above the rounding this can change.
+_FAST = {"nsz", "arcp", "contract", "reassoc"}
+_jit = njit(cache=True, error_model="numpy", fastmath=_FAST)
+#: Per-ray helpers, inlined into the kernels (a call would cut the pipeline's overlap).
+_inline = njit(cache=True, error_model="numpy", fastmath=_FAST, inline="always")
+_parallel = njit(cache=True, error_model="numpy", fastmath=_FAST, parallel=True)
+
+#: Fields of the shading geometry array (`_Rays.of`).
+SHADE_FIELDS = ("cx", "cy", "q", "s_bottom", "s_display", "half_width", "half_height", "pixel_x",
+                "pixel_y", "cover_glass", "glass_index_squared", "emission_power")
+#: Fields of the hole kernel's per-row constants (`_trace_holes`).
+PAIR_FIELDS = ("step_x", "step_y", "s_top", "beta", "scale", "thickness", "grow", "pupil_r2",
+               "lens_norm", "z_low", "z_high")
+
+
+def _cap_area(theta: np.ndarray) -> np.ndarray:
+    """theta - sin(theta) cos(theta) = (phi - sin phi) / 2, phi = 2 theta, to float64 precision:
+    by its series where the difference would cancel (phi < 1; terms to phi^21)."""
+    phi = 2 * theta
+    series = np.full_like(phi, 1 / math.factorial(21))
+    for k in range(9, 0, -1):  # 1 / 3! - phi^2 / 5! + phi^4 / 7! - ..., by Horner
+        series = 1 / math.factorial(2 * k + 1) - phi**2 * series
+    return np.where(phi < 1, 0.5 * phi**3 * series, 0.5 * (phi - np.sin(phi)))
+
+
+def _cap_table() -> np.ndarray:
+    """(CAP_TABLE + 1, 4): at equal steps of t = cbrt(1.5 g) from 0 to cbrt(0.75 pi), theta in
+    [0, pi / 2] with theta - sin theta cos theta = g (bisection, then Newton steps to float64
+    precision), d theta / d t = t^2 / sin^2 theta (1 at 0), sin theta and cos theta. The nodes
+    are at most 3e-4 rad apart."""
+    t = np.linspace(0.0, (0.75 * math.pi) ** (1 / 3), CAP_TABLE + 1)
+    g = t**3 / 1.5
+    lo, hi = np.zeros_like(t), np.full_like(t, math.pi / 2)
+    for _ in range(64):
+        mid = 0.5 * (lo + hi)
+        below = _cap_area(mid) < g
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    theta = 0.5 * (lo + hi)
+    for _ in range(3):
+        sin = np.sin(theta)
+        theta = theta - (_cap_area(theta) - g) / np.maximum(2 * sin * sin, 1e-300)
+    sin = np.sin(theta)
+    slope = np.where(t > 0, t * t / np.maximum(sin * sin, 1e-300), 1.0)
+    return np.stack([theta, slope, sin, np.cos(theta)], axis=1)
+
+
+_CAP_TABLE = _cap_table()
+_CAP_SCALE = CAP_TABLE / (0.75 * math.pi) ** (1 / 3)  # table steps per unit of t
+
+
+def _float_bits_typer(typingctx, x):
+    """The bits of a float64 as an int64 (a bit cast, as C's memcpy)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+    return types.int64(types.float64), codegen
+
+
+def _bits_float_typer(typingctx, i):
+    """The float64 of an int64's bits."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
+
+
+_float_bits: Any = intrinsic(_float_bits_typer)
+_bits_float: Any = intrinsic(_bits_float_typer)
+
+
+@_inline
+def _cbrt(y):
+    """The cube root of y >= 0 (y below 1e-200 as 1e-200), to 2 float64 steps, without a call:
+    the exponent divided by 3 in the bits (within 4 %), then 3 Halley steps (cubic: 4e-2,
+    1e-4, 1e-12, exact). libm's cbrt is a call, which spills registers and stops the kernels'
+    overlap of samples."""
+    y = max(y, 1e-200)
+    t = _bits_float(_float_bits(y) // 3 + 0x2A9F7893782DA1CE)
+    for _ in range(3):
+        t3 = t * t * t
+        t = t * (t3 + 2.0 * y) / (2.0 * t3 + y)
+    return t
+
+
+@_inline
+def _rotate(sin, cos, step):
+    """(sin, cos) of theta + step from theta's, for |step| <= 1e-3 (the table's steps are
+    3e-4): the series of sin(step) and cos(step) to step^5 are exact to float64 there."""
+    s2 = step * step
+    c_step = 1.0 - s2 * (0.5 - s2 / 24.0)
+    s_step = step * (1.0 - s2 * (1.0 / 6.0 - s2 / 120.0))
+    return sin * c_step + cos * s_step, cos * c_step - sin * s_step
+
+
+@_inline
+def _cap_theta(g, table, table_scale):
+    """(theta, sin theta, cos theta), theta in [0, pi] with theta - sin(theta) cos(theta) = g
+    (g in [0, pi]): the cap {x <= -cos(theta)} of the unit disk has area g. On the half below
+    pi / 2 (the rest by symmetry): the table (_cap_table) interpolated in t = cbrt(1.5 g) by
+    a cubic Hermite polynomial, to float64 precision, and the node's sine and cosine turned by
+    the rest of the angle (_rotate). No sin or cos is called and nothing branches: the kernels
+    are latency-bound, and a mispredicted branch would stop the next sample's overlap."""
+    flip = g > 0.5 * math.pi
+    g = max(min(g, math.pi - g), 0.0)
+    size = table.shape[0] - 1
+    t = _cbrt(1.5 * g) * table_scale
+    i = min(int(t), size - 1)
+    f = t - i
+    h = 1.0 / table_scale
+    f1 = 1.0 - f
+    theta = (f1 * f1 * ((1.0 + 2.0 * f) * table[i, 0] + f * h * table[i, 1])
+             + f * f * ((3.0 - 2.0 * f) * table[i + 1, 0] - f1 * h * table[i + 1, 1]))
+    sin, cos = _rotate(table[i, 2], table[i, 3], theta - table[i, 0])
+    return (math.pi - theta if flip else theta), sin, (-cos if flip else cos)
+
+
+@_inline
+def _concentric_point(a, b):
+    """Shirley-Chiu area-preserving map of the unit square's (a, b) onto the unit disk."""
+    a = 2.0 * a - 1.0
+    b = 2.0 * b - 1.0
+    if abs(a) > abs(b):
+        radius = a
+        angle = math.pi / 4 * (b / a)
+    else:
+        radius = b
+        angle = math.pi / 2 - math.pi / 4 * (a / (b if b != 0.0 else 1.0))
+    return radius * math.cos(angle), radius * math.sin(angle)
+
+
+@_inline
+def _lens_setup(ax, ay, r, bx, by, s):
+    """The lens of disks (a, r) and (b, s): (kind, unit x, unit y, d, area of B's cap, lens
+    area). kind 1: the circles cross; 2: one disk holds the other (area: the smaller one's);
+    0: empty (area 0). unit: a to b (x axis when d = 0), d: their distance."""
+    ox = bx - ax
+    oy = by - ay
+    d = math.hypot(ox, oy)
+    ux, uy = (ox / d, oy / d) if d > 0 else (1.0, 0.0)
+    if abs(r - s) < d < r + s:
+        chord = (d * d + r * r - s * s) / (2 * d)
+        theta_b = math.acos(min(max((d - chord) / s, -1.0), 1.0))
+        theta_a = math.acos(min(max(chord / r, -1.0), 1.0))
+        area_b = s * s * (theta_b - math.sin(theta_b) * math.cos(theta_b))
+        total = area_b + r * r * (theta_a - math.sin(theta_a) * math.cos(theta_a))
+        return 1, ux, uy, d, area_b, total
+    if d <= abs(r - s):
+        small = min(r, s)
+        return 2, ux, uy, d, 0.0, math.pi * small * small
+    return 0, ux, uy, d, 0.0, 0.0
+
+
+@_inline
+def _lens_point(kind, ax, ay, r, bx, by, s, ux, uy, d, area_b, total, a, b, table, table_scale):
+    """The point of the lens (`_lens_setup`) for the unit square's (a, b) (see _lens_sample)."""
+    if kind == 1:
+        target = a * total
+        in_b = target < area_b
+        radius = s if in_b else r
+        g = min(max((target if in_b else total - target) / (radius * radius), 0.0), math.pi)
+        _, sin, cos = _cap_theta(g, table, table_scale)
+        x = d - s * cos if in_b else r * cos
+        y = (2 * b - 1) * radius * sin
+        return ax + x * ux - y * uy, ay + x * uy + y * ux
+    px, py = _concentric_point(a, b)
+    if r <= s:
+        return ax + r * px, ay + r * py
+    return bx + s * px, by + s * py
+
+
+@_inline
+def _shade_ray(vx, vy, ux, uy, geo, hull, slack, display, offsets, out):
+    """Whether the ray (v, u) could carry light: it lands on the display, crosses the bottom
+    face's plane inside the outline (the mount) and its radiance (written to out (C,), with the
+    display optics) is not all 0. geo: SHADE_FIELDS; hull (M, 4): the outline's edges a b
+    counter-clockwise, as (a, b - a), with each edge's slack (M,) (OUTLINE_RTOL x its length);
+    offsets: stripe centres (px; none: empty)."""
+    cx, cy, q, s_bottom, s_display = geo[0], geo[1], geo[2], geo[3], geo[4]
+    land_x = cx + s_display * vx + (1 - s_display * q) * ux
+    land_y = cy + s_display * vy + (1 - s_display * q) * uy
+    slope_x = vx - q * ux
+    slope_y = vy - q * uy
+    if geo[9] > 0:  # under the cover glass the ray lands short of its straight continuation
+        n2 = geo[10]
+        factor = 1 / math.sqrt(n2 + (n2 - 1) * (slope_x**2 + slope_y**2))
+        short = geo[9] * (1 - factor)
+        land_x = land_x - short * slope_x
+        land_y = land_y - short * slope_y
+    col_mm = (land_x + geo[5]) / geo[7]
+    col_f = np.floor(col_mm)
+    row_f = np.floor((geo[6] - land_y) / geo[8])
+    if col_f < 0 or col_f >= display.shape[2] or row_f < 0 or row_f >= display.shape[1]:
+        return False
+    bottom_x = cx + s_bottom * vx + (1 - s_bottom * q) * ux
+    bottom_y = cy + s_bottom * vy + (1 - s_bottom * q) * uy
+    for e in range(hull.shape[0]):  # (a x, a y, b x - a x, b y - a y) per edge a b
+        if hull[e, 2] * (bottom_y - hull[e, 1]) - hull[e, 3] * (bottom_x - hull[e, 0]) \
+                < -slack[e]:
+            return False
+    col = int(col_f)
+    row = int(row_f)
+    stripes = offsets.size
+    within = col_mm - col_f
+    falloff = 1.0
+    if geo[11] > 0:
+        falloff = (1 + slope_x**2 + slope_y**2) ** (-geo[11] / 2)
+    lit = False
+    for c in range(display.shape[0]):
+        value = display[c, row, col]
+        if stripes > 0:
+            on = abs(within - 0.5 - offsets[c]) < 0.5 / stripes
+            value = value * stripes * (1.0 if on else 0.0)
+        if geo[11] > 0:
+            value = value * falloff
+        out[c] = value
+        lit = lit or value != 0
+    return lit
+
+
+@_parallel
+def _shade_kernel(v_x, v_y, u_x, u_y, live, geo, hull, slack, display, offsets, values, cast):
+    """values (C, N): the radiance of each live ray that could carry light (`_shade_ray`), else
+    0; cast (N,) bool: those rays (still to be cast against the mesh)."""
+    n = v_x.size
+    for block in prange((n + RAY_BLOCK - 1) // RAY_BLOCK):
+        radiance = np.empty(display.shape[0])
+        for i in range(block * RAY_BLOCK, min(n, (block + 1) * RAY_BLOCK)):
+            if live[i] and _shade_ray(v_x[i], v_y[i], u_x[i], u_y[i], geo, hull, slack,
+                                      display, offsets, radiance):
+                cast[i] = True
+                for c in range(radiance.size):
+                    values[c, i] = radiance[c]
+
+
+@_parallel
+def _holes_kernel(draw, pixel, hole, vx, vy, corner, size, top, top_r, bottom, bottom_r,
+                  neighbours, axis_low, axis_high, clear2, pair_geo, geo, hull, slack, display,
+                  offsets, table, table_scale, sums, cast, rays, contrib, counts):
+    """Hole sampling of one chunk of (view pixel, hole) pairs of a view row (module docstring).
+
+    draw (P, R n, RANDOM_PER_SAMPLE): the uniforms; pixel, hole (P,): the pairs; vx (nx,): view
+    columns, vy: the row's tan. top, bottom (K, 2), top_r, bottom_r (K,): the disks;
+    neighbours (K, M); axis_low, axis_high (K, 2): each clear cylinder's axis at the mesh's
+    lowest and highest z; clear2 (K,): its usable radius squared (< 0: none). pair_geo:
+    PAIR_FIELDS. Writes sums (P, R, C): each pair's and replicate's weighted radiance over the
+    rays that pass through their hole's clear cylinder; for the other rays that could carry
+    light cast[i] = True (i = (p R + r) n + k), rays[i] = (u_x, u_y, dx, dy) (pupil point and
+    direction per unit depth) and contrib[i] (C,) their weighted radiance, added by the caller
+    when the ray misses the mesh; counts (P,): rays that could carry light per pair."""
+    n = corner.shape[0]
+    reps = draw.shape[1] // n
+    channels = display.shape[0]
+    pairs = pixel.size
+    step_x, step_y, s_top, beta, scale = (pair_geo[0], pair_geo[1], pair_geo[2], pair_geo[3],
+                                          pair_geo[4])
+    thickness, grow, pupil_r2, lens_norm = pair_geo[5], pair_geo[6], pair_geo[7], pair_geo[8]
+    z_low, z_high = pair_geo[9], pair_geo[10]
+    cx, cy, q, s_bottom = geo[0], geo[1], geo[2], geo[3]
+    others = neighbours.shape[1]
+    for block in prange((pairs + PAIR_BLOCK - 1) // PAIR_BLOCK):
+        order = np.empty(draw.shape[1], dtype=np.int64)
+        drawn = np.empty((draw.shape[1], 4))  # v (x, y), x_t (x, y) of the pair's rays
+        radiance = np.empty(channels)
+        for p in range(block * PAIR_BLOCK, min(pairs, (block + 1) * PAIR_BLOCK)):
+            h = hole[p]
+            for rep in range(reps):
+                for c in range(channels):
+                    sums[p, rep, c] = 0.0
+            counts[p] = 0
+            pvx = vx[pixel[p]]
+            # The pair's lens: its top disk and its bottom disk seen along the rays, grown to
+            # hold it for every direction in the box (module docstring).
+            shift_x = thickness * (pvx + q * cx) / beta
+            shift_y = thickness * (vy + q * cy) / beta
+            ax, ay, r = top[h, 0], top[h, 1], top_r[h]
+            bx = (bottom[h, 0] - shift_x) / scale
+            by = (bottom[h, 1] - shift_y) / scale
+            s = (bottom_r[h] + grow) / scale
+            kind, ux, uy, d, area_b, area = _lens_setup(ax, ay, r, bx, by, s)
+            if not area > 0:
+                continue
+            weight = area / lens_norm
+            rho2 = clear2[h]
+            count = 0
+            # First every sample's ray (no unpredictable branch: the samples overlap in the
+            # pipeline), then each ray's fate.
+            for rep in range(reps):
+                base = rep * n
+                # The lens strata in the order of the permutation keys (an argsort).
+                for k in range(n):
+                    key = draw[p, base + k, 4]
+                    m = k
+                    while m > 0 and draw[p, base + order[base + m - 1], 4] > key:
+                        order[base + m] = order[base + m - 1]
+                        m -= 1
+                    order[base + m] = k
+            for rep in range(reps):
+                for k in range(n):
+                    j = rep * n + k
+                    st = order[j]
+                    v_x = pvx + (corner[k, 0] + size[k, 0] * draw[p, j, 0] - 0.5) * step_x
+                    v_y = vy + (corner[k, 1] + size[k, 1] * draw[p, j, 1] - 0.5) * step_y
+                    x_t, y_t = _lens_point(kind, ax, ay, r, bx, by, s, ux, uy, d, area_b, area,
+                                           corner[st, 0] + size[st, 0] * draw[p, j, 2],
+                                           corner[st, 1] + size[st, 1] * draw[p, j, 3],
+                                           table, table_scale)
+                    drawn[j, 0] = v_x
+                    drawn[j, 1] = v_y
+                    drawn[j, 2] = x_t
+                    drawn[j, 3] = y_t
+            for rep in range(reps):
+                for j in range(rep * n, rep * n + n):
+                    v_x, v_y, x_t, y_t = drawn[j, 0], drawn[j, 1], drawn[j, 2], drawn[j, 3]
+                    # The pupil point of the ray through x_t in direction v.
+                    u_x = (x_t - cx - s_top * v_x) / beta
+                    u_y = (y_t - cy - s_top * v_y) / beta
+                    if u_x * u_x + u_y * u_y > pupil_r2:
+                        continue
+                    if not _shade_ray(v_x, v_y, u_x, u_y, geo, hull, slack, display, offsets,
+                                      radiance):
+                        continue
+                    count += 1
+                    w = weight
+                    if others:  # 1 / the number of lenses holding the point
+                        x_b = scale * x_t + shift_x
+                        y_b = scale * y_t + shift_y
+                        holders = 1.0
+                        for m in range(others):
+                            o = neighbours[h, m]
+                            if o < 0:
+                                break
+                            if ((x_t - top[o, 0]) ** 2 + (y_t - top[o, 1]) ** 2 <= top_r[o] ** 2
+                                    and (x_b - bottom[o, 0]) ** 2 + (y_b - bottom[o, 1]) ** 2
+                                    <= (bottom_r[o] + grow) ** 2):
+                                holders += 1.0
+                        w = w * (1.0 / holders)
+                    dx = v_x - q * u_x
+                    dy = v_y - q * u_y
+                    clear = False
+                    if rho2 > 0:  # the ray at the mesh's lowest and highest z, off the axis
+                        lx = cx + u_x + (s_bottom - z_low) * dx - axis_low[h, 0]
+                        ly = cy + u_y + (s_bottom - z_low) * dy - axis_low[h, 1]
+                        hx = cx + u_x + (s_bottom - z_high) * dx - axis_high[h, 0]
+                        hy = cy + u_y + (s_bottom - z_high) * dy - axis_high[h, 1]
+                        clear = lx * lx + ly * ly < rho2 and hx * hx + hy * hy < rho2
+                    if clear:
+                        for c in range(channels):
+                            sums[p, rep, c] += radiance[c] * w
+                    else:
+                        i = p * reps * n + j
+                        cast[i] = True
+                        rays[i, 0] = u_x
+                        rays[i, 1] = u_y
+                        rays[i, 2] = dx
+                        rays[i, 3] = dy
+                        for c in range(channels):
+                            contrib[i, c] = radiance[c] * w
+            counts[p] = count
+
+
+@_jit
+def _segment_distance2(ax, ay, bx, by):
+    """Squared distance from the origin to the segment a b."""
+    ex = bx - ax
+    ey = by - ay
+    length2 = ex * ex + ey * ey
+    t = 0.0 if length2 == 0 else min(max(-(ax * ex + ay * ey) / length2, 0.0), 1.0)
+    px = ax + t * ex
+    py = ay + t * ey
+    return px * px + py * py
+
+
+@_jit
+def _clear_kernel(vertices, faces, axis_low, axis_high, z_low, z_high, box, grid_origin, cell,
+                  grid_shape, grid_start, grid_holes, clear2):
+    """clear2 (K,): lowered to the squared distance from each hole's axis of every triangle
+    whose xy bounding box meets the hole's `box` (K, 4: x0, y0, x1, y1), the triangle sheared
+    along the axis (x -> x - axis(z), axis linear from axis_low at z_low to axis_high at
+    z_high) and projected on xy (0 when it covers the axis). Holes are found through a grid of
+    square cells (grid_start (cells + 1,), grid_holes: CSR of the holes whose box meets each
+    cell, row-major over grid_shape (columns, rows))."""
+    span = z_high - z_low
+    gx, gy = grid_shape[0], grid_shape[1]
+    for f in range(faces.shape[0]):
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        x_lo = min(vertices[i0, 0], vertices[i1, 0], vertices[i2, 0])
+        x_hi = max(vertices[i0, 0], vertices[i1, 0], vertices[i2, 0])
+        y_lo = min(vertices[i0, 1], vertices[i1, 1], vertices[i2, 1])
+        y_hi = max(vertices[i0, 1], vertices[i1, 1], vertices[i2, 1])
+        c0 = max(0, math.floor((x_lo - grid_origin[0]) / cell))
+        c1 = min(gx - 1, math.floor((x_hi - grid_origin[0]) / cell))
+        r0 = max(0, math.floor((y_lo - grid_origin[1]) / cell))
+        r1 = min(gy - 1, math.floor((y_hi - grid_origin[1]) / cell))
+        for row in range(r0, r1 + 1):
+            for col in range(c0, c1 + 1):
+                g = row * gx + col
+                for e in range(grid_start[g], grid_start[g + 1]):
+                    h = grid_holes[e]
+                    if x_hi < box[h, 0] or x_lo > box[h, 2] or y_hi < box[h, 1] \
+                            or y_lo > box[h, 3]:
+                        continue
+                    ox0, oy0 = axis_low[h, 0], axis_low[h, 1]
+                    ex, ey = axis_high[h, 0] - ox0, axis_high[h, 1] - oy0
+                    w0 = (vertices[i0, 2] - z_low) / span
+                    w1 = (vertices[i1, 2] - z_low) / span
+                    w2 = (vertices[i2, 2] - z_low) / span
+                    p0x = vertices[i0, 0] - (ox0 + ex * w0)
+                    p0y = vertices[i0, 1] - (oy0 + ey * w0)
+                    p1x = vertices[i1, 0] - (ox0 + ex * w1)
+                    p1y = vertices[i1, 1] - (oy0 + ey * w1)
+                    p2x = vertices[i2, 0] - (ox0 + ex * w2)
+                    p2y = vertices[i2, 1] - (oy0 + ey * w2)
+                    s0 = p0x * p1y - p0y * p1x
+                    s1 = p1x * p2y - p1y * p2x
+                    s2 = p2x * p0y - p2y * p0x
+                    if (s0 >= 0 and s1 >= 0 and s2 >= 0) or (s0 <= 0 and s1 <= 0 and s2 <= 0):
+                        dist2 = 0.0  # the projection covers the axis
+                    else:
+                        dist2 = min(_segment_distance2(p0x, p0y, p1x, p1y),
+                                    _segment_distance2(p1x, p1y, p2x, p2y),
+                                    _segment_distance2(p2x, p2y, p0x, p0y))
+                    if dist2 < clear2[h]:
+                        clear2[h] = dist2
+
+
+@_jit
+def _cap_kernel(area, table, table_scale, out):
+    for i in range(area.size):
+        out[i] = _cap_theta(area[i], table, table_scale)[0]
+
+
+@_jit
+def _concentric_kernel(a, b, x, y):
+    for i in range(a.size):
+        x[i], y[i] = _concentric_point(a[i], b[i])
+
+
+@_jit
+def _lens_kernel(a, r, b, s, square, table, table_scale, points, area):
+    for p in range(r.size):
+        kind, ux, uy, d, area_b, total = _lens_setup(a[p, 0], a[p, 1], r[p], b[p, 0], b[p, 1],
+                                                     s[p])
+        area[p] = total
+        for k in range(square.shape[1]):
+            points[p, k, 0], points[p, k, 1] = _lens_point(
+                kind, a[p, 0], a[p, 1], r[p], b[p, 0], b[p, 1], s[p], ux, uy, d, area_b, total,
+                square[p, k, 0], square[p, k, 1], table, table_scale)
+
+
+def _cap_angle(area: np.ndarray) -> np.ndarray:
+    """theta in [0, pi] with theta - sin(theta) cos(theta) = area (area in [0, pi]): the cap
+    {x <= -cos(theta)} of the unit disk has that area (`_cap_theta`)."""
+    flat = np.ascontiguousarray(area, dtype=np.float64).ravel()
+    out = np.empty_like(flat)
+    _cap_kernel(flat, _CAP_TABLE, _CAP_SCALE, out)
+    return out.reshape(np.shape(area))
+
+
 def _concentric_disk(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Shirley-Chiu area-preserving map of the unit square onto the unit disk."""
-    a, b = 2 * a - 1, 2 * b - 1
-    outer_a = np.abs(a) > np.abs(b)
-    safe_a = np.where(a == 0, 1.0, a)
-    safe_b = np.where(b == 0, 1.0, b)
-    radius = np.where(outer_a, a, b)
-    angle = np.where(outer_a, np.pi / 4 * (b / safe_a), np.pi / 2 - np.pi / 4 * (a / safe_b))
-    return radius * np.cos(angle), radius * np.sin(angle)
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    x, y = np.empty(a.size), np.empty(a.size)
+    _concentric_kernel(np.ascontiguousarray(a).ravel(), np.ascontiguousarray(b).ravel(), x, y)
+    return x.reshape(a.shape), y.reshape(a.shape)
+
+
+def _lens_sample(a: np.ndarray, r: np.ndarray, b: np.ndarray, s: np.ndarray,
+                 square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points uniform in the lens (intersection) of disks (a (P, 2), r (P,)) and (b, s): m
+    points per lens (P, m, 2) from points `square` (P, m, 2) of the unit square, and the lens's
+    area (P,) (0 when empty; the smaller disk when one holds the other).
+
+    Along the line of centres (a at 0, b at d) the lens is B's cap x <= X then A's cap x >= X,
+    X the common chord. The first square coordinate is the area fraction from B's end, so x
+    solves a cap-area equation (_cap_angle); the second places y uniformly across the lens at
+    x. The map is monotone in both, so strata of the square stay compact in the lens. One disk
+    inside the other: the smaller one, by the concentric map."""
+    def c64(x: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    square = c64(square)
+    points = np.empty(square.shape)
+    area = np.empty(len(r))
+    _lens_kernel(c64(a), c64(r), c64(b), c64(s), square, _CAP_TABLE, _CAP_SCALE, points, area)
+    return points, area
 
 
 def _check_inputs(mesh: PlateMesh, scene: Scene, display: np.ndarray, position: int,
@@ -269,78 +776,61 @@ class _Rays:
     """What casting and shading a ray needs (module docstring), part coordinates."""
 
     scene: Scene
-    display: np.ndarray  # (C, H, W) linear radiance
+    display: np.ndarray  # (C, H, W) linear radiance, C-contiguous
     centre: tuple[float, float]  # pupil centre c
     q: float  # 1 / focus distance
     s_bottom: float  # pupil to the bottom face (the pupil's part z)
-    hull: np.ndarray  # outline, counter-clockwise (M, 2)
-    hull_tol: float
+    hull: np.ndarray  # outline's edges a b, counter-clockwise, as (a, b - a) (M, 4)
+    slack: np.ndarray  # (M,) each outline edge's slack for a ray on it (OUTLINE_RTOL)
+    geo: np.ndarray  # SHADE_FIELDS
+    offsets: np.ndarray  # stripe centres (px) per channel, empty without stripes
     blocked: Occluder
 
+    @classmethod
+    def of(cls, mesh: PlateMesh, scene: Scene, display: np.ndarray,
+           position: int) -> _Rays:
+        eye, disp = scene.eye, scene.display
+        q = 0.0 if eye.focus_mm is None else 1.0 / eye.focus_mm
+        hull = _outline_hull(mesh.vertices[:, :2])
+        tol = OUTLINE_RTOL * float(np.ptp(hull, axis=0).max())
+        edge = np.roll(hull, -1, axis=0) - hull
+        centre = eye.positions_mm[position]
+        s_bottom = scene.plate_distance_mm
+        geo = np.array([centre[0], centre[1], q, s_bottom, scene.display_distance_mm,
+                        disp.width_mm / 2, disp.height_mm / 2, disp.pixel_mm[0],
+                        disp.pixel_mm[1], disp.cover_glass_mm, disp.cover_glass_index**2,
+                        disp.emission_power], dtype=np.float64)
+        offsets = disp.subpixel_offsets_px(display.shape[0]) if disp.has_optics else None
+        return cls(scene, np.ascontiguousarray(display, dtype=np.float64), centre, q, s_bottom,
+                   np.ascontiguousarray(np.concatenate([hull, edge], axis=1)),
+                   tol * np.hypot(edge[:, 0], edge[:, 1]), geo,
+                   np.array(offsets if offsets is not None else (), dtype=np.float64),
+                   _occluder(mesh))
 
-def _refracted_landing(display: Display, x_mm: np.ndarray, y_mm: np.ndarray,
-                       slope_x: np.ndarray, slope_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where rays of slopes (x, y) in air, whose straight continuation meets z = 0 at (x, y),
-    meet the emitting surface under the cover glass: in the glass (Snell) the slope is
-    w / sqrt(n^2 + (n^2 - 1) |w|^2), so each lands t_g w (1 - that factor) short."""
-    n2 = display.cover_glass_index**2
-    factor = 1 / np.sqrt(n2 + (n2 - 1) * (slope_x**2 + slope_y**2))
-    short = display.cover_glass_mm * (1 - factor)
-    return x_mm - short * slope_x, y_mm - short * slope_y
-
-
-def _display_optics(display: Display, radiance: np.ndarray, within_px: np.ndarray,
-                    slope_x: np.ndarray, slope_y: np.ndarray) -> np.ndarray:
-    """Radiance (C, N) of the pixels the rays land on, as the display's sub-pixel stripes and
-    emission falloff make it, per ray: a striped channel is lit, at 3 times its value, only on
-    its stripe (within_px: where in its pixel the ray lands, 0 to 1 along +x); falloff
-    multiplies by cos^k of the ray's angle in air."""
-    offsets = display.subpixel_offsets_px(radiance.shape[0])
-    if offsets is not None:
-        stripes = np.stack([np.abs(within_px - 0.5 - o) < 0.5 / len(offsets) for o in offsets])
-        radiance = radiance * len(offsets) * stripes
-    if display.emission_power > 0:
-        radiance = radiance * (1 + slope_x**2 + slope_y**2) ** (-display.emission_power / 2)
-    return radiance
+    def cast(self, rays: np.ndarray) -> np.ndarray:
+        """blocked (N,) bool of rays (N, 4): pupil point u (x, y) and direction per unit depth
+        (dx, dy), from the pupil (z = s_bottom) toward -z."""
+        cx, cy = self.centre
+        origin = np.stack([cx + rays[:, 0], cy + rays[:, 1], np.full(len(rays), self.s_bottom)],
+                          axis=1)
+        direction = np.stack([rays[:, 2], rays[:, 3], -np.ones(len(rays))], axis=1)
+        return self.blocked(origin, direction)
 
 
 def _shade(rays: _Rays, v_x: np.ndarray, v_y: np.ndarray, u_x: np.ndarray, u_y: np.ndarray,
            live: np.ndarray) -> tuple[np.ndarray, int]:
     """Radiance x pass (C, N) of the rays (v, u), flat (N,) arrays, of which only `live` ones
     count (others give 0); also how many rays were cast against the mesh."""
-    scene, (cx, cy), q = rays.scene, rays.centre, rays.q
-    disp = scene.display
-    s_display = scene.display_distance_mm
     values = np.zeros((rays.display.shape[0], v_x.size), dtype=np.float64)
-    index = np.flatnonzero(live)
-    vx, vy, ux, uy = v_x[index], v_y[index], u_x[index], u_y[index]
-    # Where each ray lands on the display, and the radiance there.
-    land_x = cx + s_display * vx + (1 - s_display * q) * ux
-    land_y = cy + s_display * vy + (1 - s_display * q) * uy
-    if disp.cover_glass_mm > 0:
-        land_x, land_y = _refracted_landing(disp, land_x, land_y, vx - q * ux, vy - q * uy)
-    col_mm = (land_x + disp.width_mm / 2) / disp.pixel_mm[0]
-    col = np.floor(col_mm).astype(np.int64)
-    row = np.floor((disp.height_mm / 2 - land_y) / disp.pixel_mm[1]).astype(np.int64)
-    keep = (col >= 0) & (col < disp.pixels[0]) & (row >= 0) & (row < disp.pixels[1])
-    # The mount: rays crossing the bottom face's plane outside the outline are blocked.
-    s_bottom = rays.s_bottom
-    bottom_x = cx + s_bottom * vx + (1 - s_bottom * q) * ux
-    bottom_y = cy + s_bottom * vy + (1 - s_bottom * q) * uy
-    keep &= _inside(rays.hull, bottom_x, bottom_y, rays.hull_tol)
-    radiance = rays.display[:, row[keep], col[keep]]
-    if disp.has_optics:
-        radiance = _display_optics(disp, radiance, col_mm[keep] - col[keep],
-                                   vx[keep] - q * ux[keep], vy[keep] - q * uy[keep])
-    lit = np.any(radiance != 0, axis=0)
-    cast = np.flatnonzero(keep)[lit]  # only rays that could carry light are cast
-    # Origins on the pupil plane, directions d x / d s = v - q u, toward -z.
-    origin = np.stack([cx + ux[cast], cy + uy[cast], np.full(cast.size, s_bottom)], axis=1)
-    direction = np.stack([vx[cast] - q * ux[cast], vy[cast] - q * uy[cast],
-                          -np.ones(cast.size)], axis=1)
-    passes = ~rays.blocked(origin, direction)
-    values[:, index[cast[passes]]] = radiance[:, lit][:, passes]
-    return values, int(cast.size)
+    cast = np.zeros(v_x.size, dtype=bool)
+    _shade_kernel(v_x, v_y, u_x, u_y, np.ascontiguousarray(live), rays.geo, rays.hull,
+                  rays.slack, rays.display, rays.offsets, values, cast)
+    index = np.flatnonzero(cast)  # only rays that could carry light are cast
+    q = rays.q
+    ux, uy = u_x[index], u_y[index]
+    blocked = rays.cast(np.stack([ux, uy, v_x[index] - q * ux, v_y[index] - q * uy], axis=1))
+    values[:, index[blocked]] = 0.0
+    return values, int(index.size)
 
 
 def _trace_pupil(rays: _Rays, n: int, rng: np.random.Generator, estimates: np.ndarray,
@@ -405,81 +895,10 @@ def _disk_neighbours(centre: np.ndarray, radius: np.ndarray) -> np.ndarray:
     return table
 
 
-def _cap_angle(area: np.ndarray) -> np.ndarray:
-    """theta in [0, pi] with theta - sin(theta) cos(theta) = area (area in [0, pi]): the cap
-    {x <= -cos(theta)} of the unit disk has that area. Newton's method from the series
-    theta^3 (2/3 - 2 theta^2 / 15), on the half below pi / 2 (the rest by symmetry)."""
-    flip = area > np.pi / 2
-    g = np.where(flip, np.pi - area, area)
-    t = np.cbrt(1.5 * g)
-    theta = np.minimum(t * (1 + t * t / 15), np.pi / 2)
-    for _ in range(NEWTON_STEPS):
-        sin = np.sin(theta)
-        theta = theta - (theta - sin * np.cos(theta) - g) / np.maximum(2 * sin * sin, 1e-300)
-        theta = np.clip(theta, 0.0, np.pi / 2)
-    return np.where(flip, np.pi - theta, theta)
-
-
-def _lens_sample(a: np.ndarray, r: np.ndarray, b: np.ndarray, s: np.ndarray,
-                 square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points uniform in the lens (intersection) of disks (a (P, 2), r (P,)) and (b, s): m
-    points per lens (P, m, 2) from points `square` (P, m, 2) of the unit square, and the lens's
-    area (P,) (0 when empty; the smaller disk when one holds the other).
-
-    Along the line of centres (a at 0, b at d) the lens is B's cap x <= X then A's cap x >= X,
-    X the common chord. The first square coordinate is the area fraction from B's end, so x
-    solves a cap-area equation (_cap_angle); the second places y uniformly across the lens at
-    x. The map is monotone in both, so strata of the square stay compact in the lens."""
-    offset = b - a
-    d = np.hypot(offset[:, 0], offset[:, 1])
-    unit = np.where((d > 0)[:, None], offset / np.where(d > 0, d, 1.0)[:, None], [1.0, 0.0])
-    crossing = (d > np.abs(r - s)) & (d < r + s)
-    safe_d = np.where(crossing, d, 1.0)
-    chord = (safe_d**2 + r**2 - s**2) / (2 * safe_d)
-    theta_b = np.arccos(np.clip((safe_d - chord) / s, -1.0, 1.0))
-    theta_a = np.arccos(np.clip(chord / r, -1.0, 1.0))
-    area_b = s**2 * (theta_b - np.sin(theta_b) * np.cos(theta_b))
-    total = area_b + r**2 * (theta_a - np.sin(theta_a) * np.cos(theta_a))
-    target = square[..., 0] * total[:, None]
-    in_b = target < area_b[:, None]
-    radius = np.where(in_b, s[:, None], r[:, None])
-    theta = _cap_angle(np.clip(np.where(in_b, target, total[:, None] - target) / radius**2,
-                               0.0, np.pi))
-    x = np.where(in_b, safe_d[:, None] - s[:, None] * np.cos(theta), r[:, None] * np.cos(theta))
-    y = (2 * square[..., 1] - 1) * radius * np.sin(theta)
-    normal = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
-    points = a[:, None] + x[..., None] * unit[:, None] + y[..., None] * normal[:, None]
-    # One disk inside the other: the smaller one, by the concentric map.
-    inside = np.flatnonzero(d <= np.abs(r - s))
-    small = np.minimum(r, s)
-    if inside.size:
-        centre = np.where((r <= s)[inside, None], a[inside], b[inside])
-        disk_x, disk_y = _concentric_disk(square[inside, :, 0], square[inside, :, 1])
-        points[inside] = centre[:, None] + small[inside, None, None] * np.stack(
-            [disk_x, disk_y], axis=-1)
-    area = np.where(crossing, total, np.where(d <= np.abs(r - s), np.pi * small**2, 0.0))
-    return points, area
-
-
-def _lens_share(x_t: np.ndarray, x_b: np.ndarray, hole: np.ndarray, disks: _Disks,
-                grow: float) -> np.ndarray:
-    """1 / (number of holes whose lens holds the point) for points drawn in the lens of `hole`
-    (N,): x_t (N, 2) on the top face's plane, x_b (N, 2) where the ray of the pixel's central
-    direction through x_t crosses the bottom face's plane (lenses as _trace_holes draws them)."""
-    count = np.ones(len(hole), dtype=np.float64)
-    for m in range(disks.neighbours.shape[1]):
-        other = disks.neighbours[hole, m]
-        safe = np.where(other >= 0, other, 0)
-        inside = (np.sum((x_t - disks.top[safe]) ** 2, axis=1) <= disks.top_radius[safe] ** 2) & (
-            np.sum((x_b - disks.bottom[safe]) ** 2, axis=1)
-            <= (disks.bottom_radius[safe] + grow) ** 2)
-        count += (other >= 0) & inside
-    return 1.0 / count
-
-
 @dataclass(frozen=True)
 class _Disks:
-    """Each hole's loops as disks (circumscribed, with DISK_MARGIN) on its two faces."""
+    """Each hole's loops as disks (circumscribed, with DISK_MARGIN) on its two faces, and its
+    clear cylinder (module docstring)."""
 
     top: np.ndarray  # (K, 2) mm, top loop centroids
     top_radius: np.ndarray  # (K,) mm
@@ -487,14 +906,64 @@ class _Disks:
     bottom_radius: np.ndarray  # (K,) mm
     neighbours: np.ndarray  # (K, M) holes whose top disk overlaps, -1 padded
     by_y: np.ndarray  # (K,) holes sorted by top centre y
+    axis_low: np.ndarray  # (K, 2) mm, the clear cylinder's axis at the mesh's lowest z
+    axis_high: np.ndarray  # (K, 2) mm, and at its highest z (the top centroid)
+    clear2: np.ndarray  # (K,) mm^2, (rho - margin)^2, -1 where rho <= margin
+    z_range: tuple[float, float]  # the mesh's lowest and highest z
 
     @classmethod
-    def of(cls, loops: HoleLoops) -> _Disks:
+    def of(cls, loops: HoleLoops, mesh: PlateMesh) -> _Disks:
         top = loops.top_centroid_mm
         radius = loops.top_circum_radius_mm * (1 + DISK_MARGIN)
-        return cls(top, radius, loops.bottom_centroid_mm,
-                   loops.bottom_circum_radius_mm * (1 + DISK_MARGIN),
-                   _disk_neighbours(top, radius), np.argsort(top[:, 1], kind="stable"))
+        bottom_radius = loops.bottom_circum_radius_mm * (1 + DISK_MARGIN)
+        z_low, z_high = float(mesh.vertices[:, 2].min()), float(mesh.vertices[:, 2].max())
+        axis_high = np.ascontiguousarray(top, dtype=np.float64)
+        axis_low = np.ascontiguousarray(
+            loops.bottom_centroid_mm + loops.axes * z_low, dtype=np.float64)
+        rho = _clear_radius(mesh, axis_low, axis_high, (z_low, z_high),
+                            np.maximum(radius, bottom_radius))
+        margin = CLEAR_RTOL * float(np.ptp(mesh.vertices, axis=0).max())
+        usable = rho - margin
+        return cls(top, radius, loops.bottom_centroid_mm, bottom_radius,
+                   _disk_neighbours(top, radius), np.argsort(top[:, 1], kind="stable"),
+                   axis_low, axis_high, np.where(usable > 0, usable**2, -1.0), (z_low, z_high))
+
+
+def _clear_radius(mesh: PlateMesh, axis_low: np.ndarray, axis_high: np.ndarray,
+                  z_range: tuple[float, float], cap: np.ndarray) -> np.ndarray:
+    """(K,) mm: each hole's clear-cylinder radius rho (module docstring), at most `cap` (K,):
+    the least distance from the axis (axis_low at z_range[0] to axis_high at z_range[1]) of
+    the sheared xy projections of the mesh's triangles near it. Triangles are matched to holes
+    through a grid of cells one hole box wide, so each triangle meets a few holes."""
+    k = len(cap)
+    if k == 0:
+        return np.zeros(0)
+    lo = np.minimum(axis_low, axis_high) - cap[:, None]
+    hi = np.maximum(axis_low, axis_high) + cap[:, None]
+    box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
+    origin = lo.min(axis=0)
+    cell = max(float((hi - lo).max()), 1e-300)
+    shape = (np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1)
+    first = np.floor((lo - origin) / cell).astype(np.int64)
+    last = np.minimum(np.floor((hi - origin) / cell).astype(np.int64), shape - 1)
+    # A box is at most one cell wide, so it meets at most 2 x 2 cells.
+    holes, cells = [], []
+    for dx in (0, 1):
+        for dy in (0, 1):
+            col, row = first[:, 0] + dx, first[:, 1] + dy
+            meets = (col <= last[:, 0]) & (row <= last[:, 1])
+            holes.append(np.flatnonzero(meets))
+            cells.append(row[meets] * shape[0] + col[meets])
+    hole = np.concatenate(holes)
+    cell_of = np.concatenate(cells)
+    order = np.argsort(cell_of, kind="stable")
+    start = np.concatenate([[0], np.cumsum(np.bincount(cell_of, minlength=int(shape.prod())))])
+    clear2 = cap.astype(np.float64) ** 2
+    _clear_kernel(np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                  np.ascontiguousarray(mesh.faces, dtype=np.int64), axis_low, axis_high,
+                  z_range[0], z_range[1], box, np.ascontiguousarray(origin, dtype=np.float64),
+                  cell, shape, start, np.ascontiguousarray(hole[order]), clear2)
+    return np.sqrt(clear2)
 
 
 def _row_pairs(disks: _Disks, centre_x: np.ndarray, centre_y: float, half: tuple[float, float],
@@ -519,11 +988,24 @@ def _row_pairs(disks: _Disks, centre_x: np.ndarray, centre_y: float, half: tuple
     return pixel[near], hole[near]
 
 
-def _trace_holes(rays: _Rays, loops: HoleLoops, n: int, rng: np.random.Generator,
-                 estimates: np.ndarray, max_rays: int,
+class _Chunk(NamedTuple):
+    """A chunk of a view row's (view pixel, hole) pairs (`_trace_holes`)."""
+
+    row: int
+    row_pixel: np.ndarray  # (Q,) the view pixel (column) of each of the row's pairs
+    row_sums: np.ndarray  # (Q, R, C) the row's pair sums
+    pixel: np.ndarray  # (P,) the chunk's pairs: view pixel
+    hole: np.ndarray  # (P,) and hole
+    sums: np.ndarray  # (P, R, C) the chunk's part of row_sums
+    ends_row: bool
+
+
+def _trace_holes(rays: _Rays, loops: HoleLoops, mesh: PlateMesh, n: int,
+                 rng: np.random.Generator, estimates: np.ndarray, max_rays: int,
                  progress: Callable[[int, int], None] | None) -> tuple[int, int]:
     """Hole sampling (module docstring): adds to estimates (C, pixels, REPLICATES); returns the
-    rays cast and the (view pixel, hole) pairs."""
+    rays cast (decided against the mesh, by a clear cylinder or by Embree) and the (view pixel,
+    hole) pairs."""
     eye = rays.scene.eye
     centre = np.array(rays.centre, dtype=np.float64)
     q, thickness = rays.q, loops.thickness_mm
@@ -532,62 +1014,79 @@ def _trace_holes(rays: _Rays, loops: HoleLoops, n: int, rng: np.random.Generator
     scale = (1 - rays.s_bottom * q) / beta  # top-face offsets to bottom-face offsets
     pupil_radius = eye.pupil_mm / 2
     foot = beta * pupil_radius  # the pupil's footprint on the top face's plane
-    disks = _Disks.of(loops)
+    disks = _Disks.of(loops, mesh)
     corner, size = _strata(n)
+    corner, size = np.ascontiguousarray(corner), np.ascontiguousarray(size)
     vx, vy = eye.view_directions()
     step_x, step_y = eye.view_step
     nx, ny = eye.view_pixels
     half = (0.5 * s_top * step_x, 0.5 * s_top * step_y)
     grow = 0.5 * thickness * math.hypot(step_x, step_y) / beta  # bottom-plane slack
+    pair_geo = np.array([step_x, step_y, s_top, beta, scale, thickness, grow, pupil_radius**2,
+                         n * np.pi * foot**2, *disks.z_range], dtype=np.float64)
     channels = estimates.shape[0]
     flat = estimates.reshape(channels, -1)
     per_chunk = max(1, max_rays // (REPLICATES * n))
+    top = np.ascontiguousarray(disks.top, dtype=np.float64)
+    bottom = np.ascontiguousarray(disks.bottom, dtype=np.float64)
+
+    def chunks() -> Iterator[_Chunk]:
+        """The chunks, row by row (a row without pairs gives one empty chunk: every row ends
+        once)."""
+        for j in range(ny):
+            pixel_in_row, hole_of_row = _row_pairs(disks, centre[0] + s_top * vx,
+                                                   centre[1] + s_top * vy[j], half, foot)
+            # Pair sums of the whole row, summed into pixels at once: chunking keeps the sums.
+            pair_sums = np.zeros((pixel_in_row.size, REPLICATES, channels))
+            for first in range(0, pixel_in_row.size, per_chunk) or range(1):
+                end = first + per_chunk
+                yield _Chunk(j, pixel_in_row, pair_sums, pixel_in_row[first:end],
+                             hole_of_row[first:end], pair_sums[first:end],
+                             end >= pixel_in_row.size)
+
+    def draws(pixels: int) -> np.ndarray:
+        """The uniforms of a chunk of `pixels` pairs, (P, R n, RANDOM_PER_SAMPLE)."""
+        return rng.random((pixels, REPLICATES * n, RANDOM_PER_SAMPLE))
+
     cast = pairs = 0
-    for j in range(ny):
-        pixel_in_row, hole_of_row = _row_pairs(disks, centre[0] + s_top * vx,
-                                               centre[1] + s_top * vy[j], half, foot)
-        pairs += pixel_in_row.size
-        # Pair sums of the whole row, summed into pixels at once: chunking keeps the same sums.
-        pair_sums = np.zeros((channels, pixel_in_row.size, REPLICATES))
-        for first in range(0, pixel_in_row.size, per_chunk):
-            pixel = pixel_in_row[first:first + per_chunk]
-            hole = hole_of_row[first:first + per_chunk]
-            shape = (pixel.size, REPLICATES, n)
-            draw = rng.random((*shape, RANDOM_PER_SAMPLE)).reshape(pixel.size, -1,
-                                                                   RANDOM_PER_SAMPLE)
-            box = corner + size * draw.reshape(*shape, -1)[..., 0:2]
-            v = np.stack([vx[pixel][:, None] + (box[..., 0].reshape(pixel.size, -1) - 0.5)
-                          * step_x, vy[j] + (box[..., 1].reshape(pixel.size, -1) - 0.5)
-                          * step_y], axis=-1)  # (P, R n, 2)
-            # The pair's lens: its top disk and its bottom disk seen along the rays, grown
-            # to hold it for every direction in the box (module docstring).
-            shift = thickness * (np.stack([vx[pixel], np.full(pixel.size, vy[j])], axis=1)
-                                 + q * centre) / beta
-            stratum = np.argsort(draw[..., 4].reshape(pixel.size, -1, n), axis=-1)
-            square = corner[stratum] + size[stratum] * draw[..., 2:4].reshape(
-                pixel.size, -1, n, 2)
-            x_t, area = _lens_sample(disks.top[hole], disks.top_radius[hole],
-                                     (disks.bottom[hole] - shift) / scale,
-                                     (disks.bottom_radius[hole] + grow) / scale,
-                                     square.reshape(pixel.size, -1, 2))
-            # The pupil point of the ray through x_t in direction v.
-            u = (x_t - centre - s_top * v) / beta
-            live = ((area > 0)[:, None] & (np.sum(u**2, axis=-1) <= pupil_radius**2)).ravel()
-            v, u, x_t = v.reshape(-1, 2), u.reshape(-1, 2), x_t.reshape(-1, 2)
-            values, count = _shade(rays, v[:, 0], v[:, 1], u[:, 0], u[:, 1], live)
-            cast += count
-            weight = np.repeat(area / (n * np.pi * foot**2), REPLICATES * n)  # |lens| / ...
-            if disks.neighbours.shape[1]:
-                weight = weight * _lens_share(
-                    x_t, scale * x_t + np.repeat(shift, REPLICATES * n, axis=0),
-                    np.repeat(hole, REPLICATES * n), disks, grow)
-            pair_sums[:, first:first + pixel.size] = (values * weight).reshape(
-                channels, *shape).sum(axis=-1)
-        target = ((j * nx + pixel_in_row)[:, None] * REPLICATES + np.arange(REPLICATES)).ravel()
-        for c in range(channels):
-            flat[c] += np.bincount(target, pair_sums[c].ravel(), flat.shape[1])
-        if progress is not None:
-            progress((j + 1) * nx, nx * ny)
+    # The uniforms of the next chunk are drawn on a second thread while Embree casts this
+    # chunk's rays (both release the GIL): the same numbers in the same order as drawn inline.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        upcoming = chunks()
+        first = next(upcoming)
+        drawn = pool.submit(draws, first.pixel.size)
+        chunk: _Chunk | None = first
+        while chunk is not None:
+            draw = drawn.result()
+            samples = chunk.pixel.size * REPLICATES * n
+            to_cast = np.zeros(samples, dtype=bool)
+            ray = np.empty((samples, 4))
+            contrib = np.empty((samples, channels))
+            counts = np.empty(chunk.pixel.size, dtype=np.int64)
+            _holes_kernel(draw, chunk.pixel, chunk.hole, vx, float(vy[chunk.row]), corner, size,
+                          top, disks.top_radius, bottom, disks.bottom_radius, disks.neighbours,
+                          disks.axis_low, disks.axis_high, disks.clear2, pair_geo, rays.geo,
+                          rays.hull, rays.slack, rays.display, rays.offsets, _CAP_TABLE,
+                          _CAP_SCALE, chunk.sums, to_cast, ray, contrib, counts)
+            done, chunk = chunk, next(upcoming, None)
+            if chunk is not None:
+                drawn = pool.submit(draws, chunk.pixel.size)
+            cast += int(counts.sum())
+            # The rays near a wall: Embree decides, and those that miss the mesh count.
+            index = np.flatnonzero(to_cast)
+            passing = index[~rays.cast(ray[index])]
+            group = done.sums.reshape(-1, channels)
+            for c in range(channels):
+                group[:, c] += np.bincount(passing // n, contrib[passing, c], group.shape[0])
+            if done.ends_row:  # the row's pair sums into its pixels (the row's estimates only)
+                pairs += done.row_pixel.size
+                target = (done.row_pixel[:, None] * REPLICATES + np.arange(REPLICATES)).ravel()
+                row = slice(done.row * nx * REPLICATES, (done.row + 1) * nx * REPLICATES)
+                for c in range(channels):
+                    flat[c, row] += np.bincount(target, done.row_sums[..., c].ravel(),
+                                                nx * REPLICATES)
+                if progress is not None:
+                    progress((done.row + 1) * nx, nx * ny)
     return cast, pairs
 
 
@@ -640,17 +1139,15 @@ def trace_mesh_view(
     display = _check_inputs(mesh, scene, display, position, samples_per_pixel, max_rays,
                             sampling)
     eye = scene.eye
-    q = 0.0 if eye.focus_mm is None else 1.0 / eye.focus_mm
-    hull = _outline_hull(mesh.vertices[:, :2])
-    rays = _Rays(scene, display, eye.positions_mm[position], q, scene.plate_distance_mm, hull,
-                 OUTLINE_RTOL * float(np.ptp(hull, axis=0).max()), _occluder(mesh))
+    rays = _Rays.of(mesh, scene, display, position)
     n = math.ceil(samples_per_pixel / REPLICATES)
     nx, ny = eye.view_pixels
     channels = display.shape[0]
     rng = np.random.default_rng(seed)
     estimates = np.zeros((channels, nx * ny, REPLICATES), dtype=np.float64)
     if loops is not None:
-        cast, pairs = _trace_holes(rays, loops, n, rng, estimates, max_rays, progress)
+        cast, pairs = _trace_holes(rays, loops, mesh, n, rng, estimates, max_rays,
+                                    progress)
     else:
         cast, pairs = _trace_pupil(rays, n, rng, estimates, max_rays, progress), 0
     view = estimates.mean(axis=-1)
