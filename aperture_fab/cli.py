@@ -261,7 +261,9 @@ def _add_fabrication_flags(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--process", help="fabrication process (see `aperture-fab processes`); "
                        "default: the config's [process] (design.toml records it), else resin")
     group.add_argument("--force", action="store_true", default=None,
-                       help="write parts the process cannot make, with the violations listed")
+                       help="write parts the process cannot make, with the violations "
+                       "listed; replace a design in --out that was validated (its validation "
+                       "folders go with it)")
     group.add_argument("--step", action="store_true", default=None,
                        help="also write plate.step (a .step --out implies it)")
 
@@ -544,7 +546,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
         result = run_design(args.targets, args.out, config, fabrication=fabrication,
                             target_options=_target_options(args),
                             validation=validation, resume=args.resume, progress=output.progress,
-                            command=args.command_line, stage=output.stage)
+                            command=args.command_line, stage=output.stage,
+                            replace_validated=bool(args.force))
     except Interrupted as stop:
         output.interrupted(f"at iteration {stop.state['iteration']} (Ctrl-C); checkpoint saved in "
                            f"{folder}. Continue with the same command and --resume.")

@@ -6,6 +6,7 @@ files: it reads the targets, writes every output atomically, checkpoints, and re
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import io
@@ -36,7 +37,7 @@ from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets, resample
-from aperture_fab.io.manifest import publish, staging
+from aperture_fab.io.manifest import publish, remove_listed, staging
 from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.as_made import white_transmission
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
@@ -53,6 +54,7 @@ from aperture_fab.optimize.optimizer import (
     optimize,
     training_states,
 )
+from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.validate import (
     Validation,
     ValidationSettings,
@@ -394,8 +396,13 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                validation: ValidationSettings | None = None, resume: bool = False,
                progress: bool = True, command: Sequence[str] | None = None,
                on_staged: Callable[[Path], None] | None = None,
-               stage: Callable[[str], None] | None = None) -> DesignResult:
+               stage: Callable[[str], None] | None = None,
+               replace_validated: bool = False) -> DesignResult:
     """The `aperture-fab design` job on files. Raises Interrupted after saving a checkpoint.
+
+    A folder whose design was validated (`validations_of`) is refused before the work, as the
+    new design would leave those reports describing a part that is gone; replace_validated
+    (the CLI's --force) replaces it and removes those validation folders with the old set.
 
     Every check and all the computation come before the folder is touched (only the
     checkpoint is saved there while optimizing), so a refused run changes nothing. The outputs
@@ -409,6 +416,13 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     """
     announce = stage if stage is not None else (lambda _line: None)
     folder = output_folder(out)
+    validated = validations_of(folder)
+    if validated and not replace_validated:
+        raise ValueError(
+            f"--out {folder} holds a design that was validated ("
+            f"{', '.join(str(v / 'report.json') for v in validated)}); a new design there would "
+            "replace it and leave that report describing a part that is gone. Give another --out "
+            "to keep both, or add --force to replace the design and its validation.")
     images, names = load_targets(paths, config.scene.display.pixels, target_options)
     inputs = input_digests(paths, config, fabrication)
     chosen = None if target_options is None else target_options.changes()
@@ -453,6 +467,10 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
             write_assembly(stage_folder, result.part, result.config, fabrication, result.names,
                            folder.resolve().name)
         publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
+    for stale in validated:  # they judged the design just replaced
+        remove_listed(stale)
+        with contextlib.suppress(OSError):  # a folder that still holds the user's files stays
+            stale.rmdir()
     checkpoint.unlink(missing_ok=True)
     return result
 
