@@ -2,31 +2,60 @@
 
 from __future__ import annotations
 
+import html
+import importlib.util
 import json
+import math
 import re
+import shlex
 import shutil
 import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from aperture_fab.cli import main
 from aperture_fab.config.presets import PHOTOMASK_EMULSION_MM
+from aperture_fab.fabrication.coupon import coupon_layout
+from aperture_fab.fabrication.mesh import check_mesh, manifold_check
 from aperture_fab.fabrication.process import resolve_process
+from aperture_fab.io.formats import holes_csv, read_stl
 from aperture_fab.io.manifest import MANIFEST_NAME, check_folder
 from aperture_fab.pipeline.assembly_job import (
     ASSEMBLY_NAME,
+    SHEET_NAMES,
     load_design_part,
     plate_geometry,
     run_assembly,
 )
-from aperture_fab.validation.assembly import assembly_html, calibration_coupon
+from aperture_fab.validation.assembly import (
+    CAD_EXTRA,
+    COUPON_CSV,
+    COUPON_STL,
+    COUPON_SVG,
+    assembly_html,
+    calibration_coupon,
+)
 
 SVG = re.compile(r"<svg\b.*?</svg>", re.S)
 NS = "{http://www.w3.org/2000/svg}"
 #: A4 in PostScript points.
 A4_PT = (595.28, 841.89)
+#: A command the sheet prints, with the folder it runs in, what it needs and the note after it.
+COMMAND = re.compile(r'<pre class="command" data-cwd="([^"]*)" data-needs="([^"]*)">(.*?)</pre>'
+                     r'<p class="needs">(.*?)</p>', re.S)
+#: The cad/ scripts' run time, generously (CadQuery import, a 75-hole coupon, the frame).
+CAD_COMMAND_TIMEOUT_S = 300
+HAS_CAD = importlib.util.find_spec("cadquery") is not None
+
+
+def sheet_commands(page: str) -> list[tuple[Path, bool, str, str]]:
+    """(folder, needs the cad extra, command line, note) of every command the page prints."""
+    return [(Path(html.unescape(cwd)), needs == "cad", html.unescape(line), note)
+            for cwd, needs, line, note in COMMAND.findall(page)]
 
 
 def drawings(page: str) -> dict[str, ET.Element]:
@@ -51,9 +80,54 @@ def sheet(designed: Path) -> str:
 
 
 def test_the_design_job_writes_the_sheet_into_its_set(designed: Path) -> None:
-    assert (designed / ASSEMBLY_NAME).is_file()
     listed = json.loads((designed / MANIFEST_NAME).read_text())["files"]
-    assert ASSEMBLY_NAME in listed
+    for name in SHEET_NAMES:  # the sheet and the coupon as a part, published with the plate
+        assert (designed / name).is_file() and name in listed, name
+
+
+def test_the_coupon_is_a_closed_solid_with_a_tunnel_per_hole(designed: Path) -> None:
+    loaded = load_design_part(designed)
+    coupon = calibration_coupon(loaded.fabrication.process, loaded.config.scene.plate)
+    table = [r for r in (designed / COUPON_CSV).read_text().splitlines() if r[:1] != "#"]
+    assert table[0] == "row,col,x_mm,y_mm,radius_mm,axis_x,axis_y"
+    radii = np.sort([float(r.split(",")[4]) for r in table[1:]])
+    want = np.sort(np.repeat(np.array(coupon.diameters_mm) / 2, coupon.repeat**2))
+    assert radii == pytest.approx(want, abs=1e-6)
+    mesh = read_stl((designed / COUPON_STL).read_bytes())  # as written, float32
+    report = check_mesh(mesh)
+    assert report.ok and report.watertight and report.consistently_oriented
+    assert report.degenerate_faces == 0 and report.genus == len(radii)
+    width, height = coupon.outline_mm
+    t, cut = coupon.thickness_mm, coupon.corner_cut_mm
+    assert cut > 0
+    # polygons keep their circles' areas: solid = (outline - chamfer - holes) x thickness
+    volume = (width * height - cut**2 / 2 - math.pi * float(np.sum(radii**2))) * t
+    assert report.volume_mm3 == pytest.approx(volume, rel=1e-4)
+    assert manifold_check(mesh).genus == len(radii)
+    extent = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
+    assert extent == pytest.approx([width, height, t], abs=1e-5)
+    # the chamfer is on the top-left corner (-x, +y): no vertex there
+    x, y = mesh.vertices[:, 0], mesh.vertices[:, 1]
+    assert not np.any((x < -width / 2 + cut / 4) & (y > height / 2 - cut / 4))
+
+
+def test_the_coupon_svg_draws_every_hole_to_scale(designed: Path) -> None:
+    loaded = load_design_part(designed)
+    coupon = calibration_coupon(loaded.fabrication.process, loaded.config.scene.plate)
+    width, height = coupon.outline_mm
+    svg = ET.fromstring((designed / COUPON_SVG).read_text())
+    assert float(svg.get("width", "").removesuffix("mm")) == pytest.approx(width)
+    assert float(svg.get("height", "").removesuffix("mm")) == pytest.approx(height)
+    circles = svg.findall(f".//{NS}circle")
+    layout = coupon_layout(coupon)
+    assert len(circles) == layout.count == len(coupon.diameters_mm) * coupon.repeat**2
+    drawn = np.array([[float(c.get(k, "nan")) for k in ("cx", "cy", "r")] for c in circles])
+    # SVG's y runs down from the top edge: (x + width / 2, height / 2 - y)
+    want = np.column_stack([layout.centres_mm[:, 0] + width / 2,
+                            height / 2 - layout.centres_mm[:, 1], layout.radii_mm])
+    assert drawn == pytest.approx(want, abs=1e-6)
+    assert np.all(drawn[:, 2] > 0) and np.all(np.abs(drawn[:, :2] - [width / 2, height / 2])
+                                              + drawn[:, 2:] < [width / 2, height / 2])
 
 
 def test_the_sheet_states_the_plate_display_and_coupon(designed: Path, sheet: str) -> None:
@@ -109,9 +183,10 @@ def test_the_coupon_follows_the_processes_doc() -> None:
     # 2 to 10 pixels of 22 um, every one below the pitch
     assert coupon.diameters_mm == pytest.approx([0.022 * k for k in range(2, 11)])
     assert coupon.thickness_mm == 0.3 and coupon.pitch_mm == 0.25
-    rows = coupon.holes_csv().splitlines()
+    rows = [r for r in holes_csv(coupon_layout(coupon)).splitlines() if not r.startswith("#")]
     assert rows[0] == "row,col,x_mm,y_mm,radius_mm,axis_x,axis_y"
     assert len(rows) == 1 + 9 * 25
+    assert coupon.block_gap_mm == pytest.approx(1.0)  # whole cells: 4 of 0.25 mm
     width, height = coupon.outline_mm
     for row in rows[1:]:
         _, _, x, y, r, _, _ = (float(v) for v in row.split(","))
@@ -147,6 +222,77 @@ def test_the_command_writes_the_sheet(designed: Path, tmp_path: Path,
     # in place: the same sheet, so the folder still matches its manifest
     assert run_assembly(designed) == designed / ASSEMBLY_NAME
     check_folder(designed)
+
+
+def test_the_sheet_says_where_each_command_runs_and_what_it_needs(designed: Path) -> None:
+    page = (designed / ASSEMBLY_NAME).read_text()
+    listed = json.loads((designed / MANIFEST_NAME).read_text())["files"]
+    commands = sheet_commands(page)
+    assert sorted(shlex.split(line)[-1] for _, _, line, _ in commands) == ["coupon.step",
+                                                                           "frame.stl"]
+    assert f"run in the design folder ({shlex.join(['cd', str(designed.resolve())])})" in page
+    for folder, needs_cad, line, note in commands:
+        argv = shlex.split(line)
+        assert folder == designed.resolve()
+        assert argv[0] == sys.executable  # the Python that has aperture-fab
+        script = Path(argv[1])
+        assert script.is_absolute() and script.is_file(), script
+        if "--design" in argv:
+            assert (folder / argv[argv.index("--design") + 1] / "design.toml").is_file()
+        for arg in argv[2:]:
+            if arg.endswith(".csv"):
+                assert (folder / arg).is_file(), arg
+        assert argv[-1] not in listed  # what it writes never clashes with the design's set
+        assert needs_cad, line  # both are cad/ scripts: the note says so, and how to install
+        assert f"<b>{CAD_EXTRA}</b> extra" in note and "1.3 GB" in note
+        assert "pip install -e" in note and f"[{CAD_EXTRA}]" in note
+
+
+def test_the_command_adds_the_sheet_to_an_older_or_moved_design_set(designed: Path,
+                                                                     tmp_path: Path) -> None:
+    folder = tmp_path / "moved"
+    shutil.copytree(designed, folder)
+    manifest = json.loads((folder / MANIFEST_NAME).read_text())
+    for name in (COUPON_STL, COUPON_SVG, COUPON_CSV):  # as an older aperture-fab left it
+        (folder / name).unlink()
+        del manifest["files"][name]
+    (folder / MANIFEST_NAME).write_text(json.dumps(manifest))
+    check_folder(folder)
+    assert run_assembly(folder) == folder / ASSEMBLY_NAME
+    check_folder(folder)  # sheet and coupon joined the set: it still matches its manifest
+    again = json.loads((folder / MANIFEST_NAME).read_text())
+    assert set(SHEET_NAMES) <= set(again["files"]) and again["command"] == manifest["command"]
+    assert set(again["files"]) == set(manifest["files"]) | set(SHEET_NAMES)
+    for name in (COUPON_STL, COUPON_SVG, COUPON_CSV):
+        assert (folder / name).read_bytes() == (designed / name).read_bytes()
+    # the sheet now sends its commands to the folder where the design is
+    assert {cwd for cwd, *_ in sheet_commands((folder / ASSEMBLY_NAME).read_text())} \
+        == {folder.resolve()}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("writes", ["frame.stl", "coupon.step"])
+def test_the_sheet_commands_run_as_printed(designed: Path, tmp_path: Path, writes: str) -> None:
+    folder = tmp_path / "design"
+    shutil.copytree(designed, folder)
+    run_assembly(folder)
+    [(cwd, needs_cad, line, _)] = [c for c in sheet_commands((folder / ASSEMBLY_NAME).read_text())
+                                   if shlex.split(c[2])[-1] == writes]
+    if needs_cad and not HAS_CAD:
+        pytest.skip(f"{writes}: the command needs the {CAD_EXTRA} extra (CadQuery, about 1.3 GB), "
+                    f"not installed here: pip install -e '.[{CAD_EXTRA}]'")
+    result = subprocess.run(line, shell=True, cwd=cwd, capture_output=True, text=True,
+                            timeout=CAD_COMMAND_TIMEOUT_S, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"wrote {writes}" in result.stdout
+    assert (cwd / writes).stat().st_size > 0
+    check_folder(folder)  # what the commands write stays outside the design's set
+    if writes == "coupon.step":  # the CAD coupon is the mesh coupon: the same solid
+        import cadquery as cq
+
+        solid = cq.importers.importStep(str(cwd / writes)).val()
+        mesh = check_mesh(read_stl((folder / COUPON_STL).read_bytes()))
+        assert solid.isValid() and solid.Volume() == pytest.approx(mesh.volume_mm3, rel=1e-4)
 
 
 @pytest.mark.parametrize(("make", "message"), [

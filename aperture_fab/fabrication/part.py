@@ -26,6 +26,7 @@ __all__ = [
     "FabricationSettings",
     "fabrication_settings",
     "build_part",
+    "chord_tolerance_mm",
     "design_bounds",
     "drawn_fractions",
     "make_part",
@@ -166,8 +167,13 @@ def build_part(layout: HoleLayout, settings: FabricationSettings, min_web_mm: fl
     process's radius tolerance, the alignment chamfer, webs of at least min_web_mm."""
     margin = (layout.outline_mm[0] - layout.grid[0] * layout.pitch_mm[0]) / 2
     cut = CORNER_CUT_SHARE * margin if settings.alignment_cut and margin > 0 else 0.0
-    sigma = settings.process.radius_sigma_mm
-    chord = min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * sigma))
-    mesh = build_mesh(layout, chord, min_web_mm=min_web_mm, corner_cut_mm=cut)
+    mesh = build_mesh(layout, chord_tolerance_mm(settings.process), min_web_mm=min_web_mm,
+                      corner_cut_mm=cut)
     return Part(layout, mesh, check_mesh(mesh), cut)
+
+
+def chord_tolerance_mm(process: Process) -> float:
+    """How far a hole's polygon may stray from its circle for this process (mm): a share of
+    its radius sigma, well inside what it makes, within MIN_CHORD_MM..MAX_CHORD_MM."""
+    return min(MAX_CHORD_MM, max(MIN_CHORD_MM, CHORD_SHARE_OF_SIGMA * process.radius_sigma_mm))
 

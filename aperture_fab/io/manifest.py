@@ -200,15 +200,23 @@ def _publish_lock(folder: Path, wait_s: float) -> Iterator[None]:
 
 
 def publish(stage: Path, folder: Path, command: Sequence[str], *,
-            wait_s: float = LOCK_WAIT_S) -> dict[str, dict[str, Any]]:
+            wait_s: float = LOCK_WAIT_S, add: bool = False) -> dict[str, dict[str, Any]]:
     """Move every file of `stage` into `folder`, remove the files folder's earlier manifest
     lists that this run did not write (any other file is the user's and stays), and write
     manifest.json last; all under folder's publish lock (waiting up to wait_s for another
-    run's). Returns the manifest's files block {name: {"sha256", "size_bytes"}}."""
+    run's). Returns the manifest's files block {name: {"sha256", "size_bytes"}}.
+
+    add: the staged files join the published set instead of replacing it (`aperture-fab
+    assembly` adding its sheet to a design's set): they replace their namesakes, the set's
+    other files stay listed as they are, and the manifest keeps the command that wrote the
+    set. Check the folder first (check_folder): the kept entries are taken as listed."""
     names = sorted(p.name for p in stage.iterdir() if p.is_file())
     files = {name: _entry(stage / name) for name in names}
     with _publish_lock(folder, wait_s):
         earlier = listed_files(folder)
+        if add:
+            files = {**{n: e for n, e in earlier.items() if n not in files}, **files}
+            command = _listed_command(folder) or command
         # From here until the last line the folder is a mix: say so first, so a reader refuses
         # it, and name the earlier set, so that a publish killed midway is cleaned up next time.
         write_atomic(folder / MANIFEST_NAME,
@@ -219,6 +227,15 @@ def publish(stage: Path, folder: Path, command: Sequence[str], *,
         _sync_folder(folder)
         write_atomic(folder / MANIFEST_NAME, _manifest_text(files, command, complete=True))
     return files
+
+
+def _listed_command(folder: Path) -> list[str]:
+    """The command folder's manifest.json records (empty without a readable one)."""
+    try:
+        command = json.loads((folder / MANIFEST_NAME).read_text())["command"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    return [str(c) for c in command] if isinstance(command, list) else []
 
 
 def _toml_content_sha256(path: Path) -> str | None:

@@ -1,23 +1,33 @@
-"""The `aperture-fab assembly` job: the assembly sheet of a design folder, and the plate's
-geometry as built, for the cad/ scripts.
+"""The `aperture-fab assembly` job: the assembly sheet of a design folder with the calibration
+coupon as a part, and the plate's geometry as built, for the cad/ scripts.
 
 A design folder holds design.toml (the config, the process and the fabrication settings as used)
 and design.npz (the plate); the part is re-made from them exactly as `export` does, so the sheet
 describes the part the folder's files hold.
+
+The sheet's set is assembly.html, coupon.stl, coupon.svg and coupon_holes.csv (`sheet_files`).
+The design job stages them with the rest of its set; `run_assembly` adds them to a design
+folder's published set (aperture_fab.io.manifest.publish with add=True), so the folder still
+matches its manifest. The sheet's commands run in that folder (`command_setup`).
 """
 
 from __future__ import annotations
 
+import shlex
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+import aperture_fab
 from aperture_fab.config.config import Config
+from aperture_fab.fabrication.coupon import calibration_coupon, coupon_part
 from aperture_fab.fabrication.part import FabricationSettings, Part, fabrication_settings, make_part
 from aperture_fab.io.files import write_atomic
-from aperture_fab.io.manifest import refuse_overwrite
+from aperture_fab.io.formats import holes_csv, stl_bytes, svg_text
+from aperture_fab.io.manifest import MANIFEST_NAME, publish, refuse_overwrite, staging
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,
     DESIGN_NAME,
@@ -26,11 +36,28 @@ from aperture_fab.pipeline.saved import (
     read_config,
     read_design,
 )
+from aperture_fab.validation.assembly import (
+    CAD_EXTRA,
+    COUPON_CSV,
+    COUPON_STL,
+    COUPON_SVG,
+    CommandSetup,
+    assembly_html,
+)
 
-__all__ = ["ASSEMBLY_NAME", "DesignPart", "PlateGeometry", "assembly_text", "load_design_part",
-           "plate_geometry", "run_assembly", "write_assembly"]
+__all__ = ["ASSEMBLY_NAME", "SHEET_NAMES", "DesignPart", "PlateGeometry", "assembly_text",
+           "command_setup", "load_design_part", "plate_geometry", "run_assembly", "sheet_files",
+           "write_assembly"]
 
 ASSEMBLY_NAME = "assembly.html"
+#: Every file of the sheet's set, written into the design folder.
+SHEET_NAMES = (ASSEMBLY_NAME, COUPON_STL, COUPON_SVG, COUPON_CSV)
+#: The source tree holding this package, where the cad/ scripts and pyproject.toml are (an
+#: installation from a wheel has neither).
+SOURCE_TREE = Path(aperture_fab.__file__).resolve().parent.parent
+CAD_FOLDER_NAME = "cad"
+#: The manifest's command when the sheet's files start a folder's set (a folder without one).
+ASSEMBLY_COMMAND = ("aperture-fab", "assembly")
 
 
 @dataclass(frozen=True)
@@ -94,46 +121,102 @@ def plate_geometry(folder: Path) -> PlateGeometry:
                          float(loaded.part.corner_cut_mm), clear)
 
 
-def assembly_text(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
-                  names: Sequence[str], design_name: str) -> str:
-    """The sheet for a part; the display PNGs in `folder`, when there, become its
-    thumbnails."""
-    from aperture_fab.validation.assembly import assembly_html
+def command_setup(design_folder: Path) -> CommandSetup:
+    """Where the sheet's commands run and with what: the design folder (absolute), this Python
+    (it has aperture-fab) and this source tree's cad/ scripts; where aperture-fab was installed
+    without its source, "cad" and the sheet says where the scripts come from."""
+    python = sys.executable or "python"
+    cad = SOURCE_TREE / CAD_FOLDER_NAME
+    if (SOURCE_TREE / "pyproject.toml").is_file() and cad.is_dir():
+        target = shlex.quote(f"{SOURCE_TREE}[{CAD_EXTRA}]")
+        return CommandSetup(Path(design_folder).resolve(), python, cad,
+                            f"{shlex.quote(python)} -m pip install -e {target}")
+    return CommandSetup(Path(design_folder).resolve(), python, Path(CAD_FOLDER_NAME),
+                        f"{shlex.quote(python)} -m pip install 'aperture-fab[{CAD_EXTRA}]'")
 
+
+def assembly_text(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
+                  names: Sequence[str], design_folder: Path) -> str:
+    """The sheet for a part whose design is published to design_folder (its commands run
+    there); the display PNGs in `folder`, when there, become its thumbnails."""
     displays = {}
     for name in names:
         png = folder / f"display_{name}.png"
         if png.is_file():
             displays[name] = png.read_bytes()
     return assembly_html(part, config, fabrication.process, list(names),
-                         design_name=design_name, displays=displays)
+                         design_name=Path(design_folder).resolve().name, displays=displays,
+                         commands=command_setup(design_folder))
+
+
+def sheet_files(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
+                names: Sequence[str], design_folder: Path) -> dict[str, bytes]:
+    """The sheet's set, name -> bytes: assembly.html (assembly_text's arguments) and the
+    calibration coupon as a part, built by the plate's mesh builder and written by the plate's
+    formats (mm): coupon.stl, coupon.svg (the design's SVG polarity), coupon_holes.csv."""
+    process = fabrication.process
+    coupon = coupon_part(calibration_coupon(process, config.scene.plate), process)
+    sheet = assembly_text(folder, part, config, fabrication, names, design_folder)
+    return {
+        ASSEMBLY_NAME: sheet.encode(),
+        COUPON_STL: stl_bytes(coupon.mesh),
+        COUPON_SVG: svg_text(coupon.layout, fabrication.svg_polarity,
+                             corner_cut_mm=coupon.corner_cut_mm).encode(),
+        COUPON_CSV: holes_csv(coupon.layout).encode(),
+    }
 
 
 def write_assembly(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
-                   names: Sequence[str], design_name: str) -> Path:
-    """Write assembly.html into `folder` (a design job's staging folder) for its part;
-    design_name: the folder the design is published to, as the sheet names it."""
-    path = folder / ASSEMBLY_NAME
-    write_atomic(path, assembly_text(folder, part, config, fabrication, names, design_name))
-    return path
+                   names: Sequence[str], design_folder: Path) -> list[Path]:
+    """Write the sheet's set (sheet_files) into `folder`, a design job's staging folder, for
+    its part; design_folder: where the design is published (the sheet's commands run there)."""
+    files = sheet_files(folder, part, config, fabrication, names, design_folder)
+    for name, data in files.items():
+        write_atomic(folder / name, data)
+    return [folder / name for name in files]
+
+
+def _add_to_set(folder: Path, files: dict[str, bytes]) -> None:
+    """Put the sheet's files into a design folder: nothing when they are there already; added to
+    its published set through a staging folder when it has a manifest (the folder then still
+    matches it), else written one by one (a folder from before manifests is not checked)."""
+    changed = {name: data for name, data in files.items()
+               if not ((folder / name).is_file() and (folder / name).read_bytes() == data)}
+    if not changed:
+        return
+    if not (folder / MANIFEST_NAME).is_file():
+        for name, data in changed.items():
+            write_atomic(folder / name, data)
+        return
+    with staging(folder) as stage:
+        for name, data in files.items():
+            write_atomic(stage / name, data)
+        publish(stage, folder, [*ASSEMBLY_COMMAND, str(folder)], add=True)
 
 
 def run_assembly(folder: Path, out: Path | None = None) -> Path:
-    """The `assembly` command: the sheet of a design folder, to out (default: assembly.html in
-    the folder; a folder given as out gets assembly.html)."""
-    target = Path(folder) / ASSEMBLY_NAME if out is None else Path(out)
-    if target.is_dir():
+    """The `assembly` command: the sheet's set of a design folder (sheet_files) brought up to
+    date there, added to its published set; with out, the sheet is also written there (a folder
+    given as out gets assembly.html). Returns the sheet's path (out's, when given)."""
+    target = None if out is None else Path(out)
+    if target is not None and target.is_dir():
         target = target / ASSEMBLY_NAME
-    if target.suffix.lower() not in (".html", ".htm"):
+    if target is not None and target.suffix.lower() not in (".html", ".htm"):
         raise ValueError(f"--out {target}: the sheet is an HTML page; give a name ending in "
                          f".html, e.g. {target.with_suffix('.html')}.")
-    if out is not None and not target.parent.is_dir():
+    if target is not None and not target.parent.is_dir():
         raise ValueError(f"--out {target}: the folder {target.parent} does not exist; create it "
                          "or choose another --out.")
     loaded = load_design_part(folder)
-    text = assembly_text(loaded.folder, loaded.part, loaded.config, loaded.fabrication,
-                         loaded.names, loaded.folder.resolve().name)
-    if target.is_file() and target.read_text(errors="replace") == text:
+    design_folder = loaded.folder.resolve()
+    files = sheet_files(design_folder, loaded.part, loaded.config, loaded.fabrication,
+                        loaded.names, design_folder)
+    _add_to_set(design_folder, files)
+    sheet = design_folder / ASSEMBLY_NAME
+    if target is None or target.resolve() == sheet:
+        return sheet
+    text = files[ASSEMBLY_NAME]
+    if target.is_file() and target.read_bytes() == text:
         return target  # the same sheet: leave the file (and a manifest that lists it) alone
     refuse_overwrite(target.parent, [target.name])
     write_atomic(target, text)

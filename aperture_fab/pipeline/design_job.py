@@ -461,11 +461,11 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                                                for key in ("mse", "psnr_db")}
                 write_summary(stage_folder, result)  # design.json again, with the validated figures
                 staged(stage_folder)
-        if result.part is not None and fabrication is not None:  # assembly.html
+        if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
             from aperture_fab.pipeline.assembly_job import write_assembly
 
             write_assembly(stage_folder, result.part, result.config, fabrication, result.names,
-                           folder.resolve().name)
+                           folder.resolve())
         publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
     for stale in validated:  # they judged the design just replaced
         remove_listed(stale)

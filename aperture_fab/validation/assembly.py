@@ -7,6 +7,10 @@ device in section (display, frame, plate, eye), where and which way up the displ
 the panel, the calibration coupon of docs/processes.md and a numbered procedure. Its drawings are
 inline SVG in millimetres (aperture_fab.validation.assembly_drawings); printed at 100 % on A4
 they hold their stated scale, which the page's 1:1 scale bar lets the reader check.
+
+The commands it prints (the cad/ scripts for the frame and a STEP coupon) run as printed: in
+the design folder the sheet names, with the Python and the script paths of `CommandSetup`, each
+with what it needs (the cad extra) and how to install it.
 """
 
 from __future__ import annotations
@@ -14,16 +18,18 @@ from __future__ import annotations
 import base64
 import html
 import math
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 from aperture_fab.config.config import Config
+from aperture_fab.fabrication.coupon import Coupon, calibration_coupon
 from aperture_fab.fabrication.layout import HoleLayout, layout_stats
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
-from aperture_fab.optics.scene import Plate, Scene
+from aperture_fab.optics.scene import Scene
 from aperture_fab.validation.assembly_drawings import (
-    Coupon,
     StackSizes,
     coupon_drawing,
     placement_drawing,
@@ -32,19 +38,26 @@ from aperture_fab.validation.assembly_drawings import (
     stack_drawing,
 )
 
-__all__ = ["AssemblyFacts", "assembly_facts", "assembly_html", "calibration_coupon"]
+__all__ = ["AssemblyFacts", "CommandSetup", "assembly_facts", "assembly_html",
+           "calibration_coupon"]
 
-#: Coupon layout: holes per block side, solid between blocks and at the edge (mm).
-COUPON_REPEAT = 5
-COUPON_BLOCK_GAP_MM = 1.0
-COUPON_MARGIN_MM = 1.0
-#: Drawn diameters of the resin coupon in printer pixels (docs/processes.md: 2 to 10 pixels).
-COUPON_PIXELS = tuple(range(2, 11))
-#: Without a pixel grid: drawn diameters as multiples of the process's smallest hole.
-COUPON_SHARES = (0.5, 0.625, 0.75, 0.875, 1.0, 1.25, 1.5, 1.75, 2.0)
 #: The frame's ledge assumed in the section drawing (cad/mount_frame.py's default), mm.
 FRAME_LEDGE_MM = 1.0
 MM_PER_INCH = 25.4
+#: The files the sheet's set puts beside it in the design folder (aperture_fab.pipeline.
+#: assembly_job writes them): the coupon as a mesh, as a 2D map, and its hole table.
+COUPON_STL, COUPON_SVG, COUPON_CSV = "coupon.stl", "coupon.svg", "coupon_holes.csv"
+#: What the cad/ scripts write when run as the sheet prints them (in the design folder; names
+#: that no design set uses, so they never clash with its files).
+FRAME_OUT, COUPON_STEP_OUT = "frame.stl", "coupon.step"
+#: The optional dependency the cad/ scripts need (pyproject.toml) and its installed size.
+CAD_EXTRA = "cad"
+CAD_EXTRA_SIZE = "about 1.3 GB installed: CadQuery, OCCT and VTK"
+CAD_INSTALL = f"pip install 'aperture-fab[{CAD_EXTRA}]'"
+#: The frame command's example display module: the panel's active area (or the plate, if
+#: wider) plus this border each side, and a bezel this high (cad/mount_frame.py's default).
+EXAMPLE_BORDER_MM = 5.0
+EXAMPLE_BEZEL_MM = 0.5
 
 CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
 CSS = """
@@ -73,6 +86,8 @@ svg .axis { stroke: #b00; }
 .thumbs img { width: 40mm; image-rendering: pixelated; border: 1px solid #999; }
 .thumbs figure { display: inline-block; margin-right: 1rem; }
 pre { font-size: 0.8em; max-height: 12rem; overflow: auto; background: #f4f4f4; }
+pre.command { white-space: pre-wrap; word-break: break-all; padding: 0.3rem 0.5rem; }
+p.needs { font-size: 0.9em; color: #444; margin-top: 0; }
 @page { size: A4; margin: 12mm; }
 @media print {
   body { background: #fff; font-size: 10.5pt; }
@@ -111,6 +126,34 @@ class AssemblyFacts:
     scale_tolerance: float
 
 
+@dataclass(frozen=True)
+class CommandSetup:
+    """Where and with what the sheet's commands run, so that they run as printed.
+
+    folder: the design folder; every command runs there and names its files relative to it
+        (absolute when the sheet is written by a job; aperture_fab.pipeline.assembly_job).
+    python: the Python that has aperture-fab installed (the one that wrote the sheet).
+    cad_folder: the folder of the cad/ scripts; relative ("cad") where this installation has
+        none (installed without its source tree): the sheet then says where they come from.
+    cad_install: the command that installs the cad extra into that Python.
+    """
+
+    folder: Path
+    python: str = "python"
+    cad_folder: Path = Path("cad")
+    cad_install: str = CAD_INSTALL
+
+
+@dataclass(frozen=True)
+class SheetCommand:
+    """One command the sheet prints: its words, what it writes, whether it needs the cad
+    extra."""
+
+    argv: tuple[str, ...]
+    writes: str
+    needs_cad: bool
+
+
 def assembly_facts(layout: HoleLayout, scene: Scene, process: Process) -> AssemblyFacts:
     """The sheet's numbers for a layout in its scene."""
     stats = layout_stats(layout)
@@ -135,27 +178,6 @@ def assembly_facts(layout: HoleLayout, scene: Scene, process: Process) -> Assemb
     )
 
 
-def calibration_coupon(process: Process, plate: Plate) -> Coupon:
-    """The calibration plate of docs/processes.md at the design's pitch and thickness: drawn
-    diameters from 2 to 10 printer pixels for a process with a pixel grid (a radius step), the
-    process's own sizes when it has discrete ones, else 0.5 to 2 times its smallest hole. Sizes
-    that would not leave a web at the pitch are left out."""
-    pitch = min(plate.pitch_mm)
-    if process.hole_sizes_mm:
-        wanted = tuple(process.hole_sizes_mm)
-    elif process.radius_step_mm > 0:
-        wanted = tuple(2 * process.radius_step_mm * k for k in COUPON_PIXELS)
-    else:
-        smallest = process.min_hole_for(plate.thickness_mm)
-        wanted = tuple(round(smallest * share, 4) for share in COUPON_SHARES)
-    fits = tuple(d for d in wanted if d < pitch)
-    if not fits:  # the design's pitch holds none of them: space them at the process's web
-        pitch = max(wanted) + process.min_web_for(plate.thickness_mm)
-        fits = wanted
-    return Coupon(fits, pitch, COUPON_REPEAT, COUPON_BLOCK_GAP_MM, COUPON_MARGIN_MM,
-                  plate.thickness_mm)
-
-
 def _e(value: object) -> str:
     return html.escape(str(value), quote=True)
 
@@ -171,6 +193,67 @@ def _table(rows: Sequence[tuple[str, str]]) -> str:
 
 def _figure(svg: str, caption: str) -> str:
     return f"<figure>{svg}<figcaption>{_e(caption)}</figcaption></figure>"
+
+
+def _number(value: float) -> str:
+    """A length for a command line: up to 4 decimals, no trailing zeros (22, 0.6, 21.25)."""
+    return f"{value:.4f}".rstrip("0").rstrip(".")
+
+
+def _where(setup: CommandSetup) -> str:
+    """The folder the commands run in, as the sheet states it."""
+    if setup.folder.is_absolute():
+        return f"the design folder ({shlex.join(['cd', str(setup.folder)])})"
+    return f"the design folder ({setup.folder})"
+
+
+def _cad_script(setup: CommandSetup, name: str) -> str:
+    return str(setup.cad_folder / name)
+
+
+def _command(command: SheetCommand, setup: CommandSetup) -> str:
+    """A command as the sheet prints it: one line to copy, then where to run it and, for the
+    cad/ scripts, what it needs and how to install it."""
+    needs = "cad" if command.needs_cad else ""
+    line = shlex.join(command.argv)
+    notes = [f"Run in {_e(_where(setup))}; it writes {_e(command.writes)} there."]
+    if command.needs_cad:
+        notes.append(
+            f"Needs the <b>{CAD_EXTRA}</b> extra ({_e(CAD_EXTRA_SIZE)}), not installed with "
+            f"aperture-fab itself: <code>{_e(setup.cad_install)}</code>.")
+        if not setup.cad_folder.is_absolute():
+            notes.append(f"The script is in the {_e(setup.cad_folder)}/ folder of aperture-fab's "
+                         "source tree; give its path there.")
+    return (f'<pre class="command" data-cwd="{_e(setup.folder)}" data-needs="{needs}">'
+            f'{_e(line)}</pre><p class="needs">{" ".join(notes)}</p>')
+
+
+def _example_module_mm(config: Config, part: Part) -> tuple[float, float]:
+    """The frame command's example display module outline: the panel's active area, or the
+    plate where it is wider, rounded up to whole mm, plus EXAMPLE_BORDER_MM each side."""
+    display = config.scene.display
+    width, height = part.layout.outline_mm
+    return (math.ceil(max(display.width_mm, width)) + 2 * EXAMPLE_BORDER_MM,
+            math.ceil(max(display.height_mm, height)) + 2 * EXAMPLE_BORDER_MM)
+
+
+def _frame_command(config: Config, part: Part, setup: CommandSetup) -> SheetCommand:
+    """cad/mount_frame.py for this design, with an example display module that fits it."""
+    module = _example_module_mm(config, part)
+    argv = (setup.python, _cad_script(setup, "mount_frame.py"), "--design", ".", "--display",
+            _number(module[0]), _number(module[1]), "--bezel-height", _number(EXAMPLE_BEZEL_MM),
+            "--out", FRAME_OUT)
+    return SheetCommand(argv, FRAME_OUT, needs_cad=True)
+
+
+def _coupon_command(coupon: Coupon, setup: CommandSetup) -> SheetCommand:
+    """cad/plate_from_csv.py for the coupon: a STEP B-rep from its hole table."""
+    width, height = coupon.outline_mm
+    argv = (setup.python, _cad_script(setup, "plate_from_csv.py"), COUPON_CSV, "--width",
+            _number(width), "--height", _number(height), "--thickness",
+            _number(coupon.thickness_mm), "--corner-cut", _number(coupon.corner_cut_mm),
+            "--out", COUPON_STEP_OUT)
+    return SheetCommand(argv, COUPON_STEP_OUT, needs_cad=True)
 
 
 def _thumbs(displays: Mapping[str, bytes]) -> str:
@@ -220,15 +303,14 @@ def _plate_section(part: Part, config: Config, process: Process, facts: Assembly
           "top-left seen from the eye.</p></section>")
 
 
-def _stack_section(config: Config, part: Part, folder_hint: str) -> str:
+def _stack_section(config: Config, part: Part, setup: CommandSetup) -> str:
     scene = config.scene
     plate, eye, display = scene.plate, scene.eye, scene.display
     eyebox = float(eye.eyebox_mm[0]) if eye.eyebox_mm is not None else 0.0
     sizes = StackSizes(display.width_mm, part.layout.outline_mm[0], plate.gap_mm,
                        plate.thickness_mm, eye.eye_relief_mm, eye.pupil_mm, eyebox,
                        FRAME_LEDGE_MM)
-    command = (f"python cad/mount_frame.py --design {folder_hint} --display W H "
-               "--bezel-height B --out frame.stl")
+    module = _example_module_mm(config, part)
     return (
         '<section id="frame"><h2>2. The frame and the stack</h2>'
         + _figure(stack_drawing(sizes),
@@ -238,12 +320,17 @@ def _stack_section(config: Config, part: Part, folder_hint: str) -> str:
                           "display-side face"),
                   ("eye relief", f"{eye.eye_relief_mm:g} mm: plate's eye-side face to the pupil"),
                   ("plate top above the display", f"{plate.gap_mm + plate.thickness_mm:g} mm")])
-        + f"<p>Make the frame with <code>{_e(command)}</code>: W H is your display module's "
-          "outline and B how far its bezel stands above the emitting surface. It reads the "
-          "plate's outline, thickness, gap and chamfer from the design; its pocket has a "
-          "matching key, so the plate seats only the right way round. Measure the printed gap "
-          "(the ledge's height above the display surface); the design's sharpness is set by "
-          "it.</p></section>")
+        + "<p>Make the frame with cad/mount_frame.py:</p>"
+        + _command(_frame_command(config, part, setup), setup)
+        + f"<p>--display {_number(module[0])} {_number(module[1])} and --bezel-height "
+          f"{_number(EXAMPLE_BEZEL_MM)} are an example (the panel's active area, "
+          f"{display.width_mm:g} x {display.height_mm:g} mm, or the plate if wider, with a "
+          f"{EXAMPLE_BORDER_MM:g} mm border): give your display module's "
+          "measured outline (width, height) and how far its bezel stands above the emitting "
+          "surface. It reads the plate's outline, thickness, gap and chamfer from the design; "
+          "its pocket has a matching key, so the plate seats only the right way round. Measure "
+          "the printed gap (the ledge's height above the display surface); the design's "
+          "sharpness is set by it.</p></section>")
 
 
 def _display_section(config: Config, part: Part, facts: AssemblyFacts, names: Sequence[str],
@@ -298,12 +385,9 @@ def _display_section(config: Config, part: Part, facts: AssemblyFacts, names: Se
           "light.</p></section>")
 
 
-def _coupon_section(coupon: Coupon, process: Process) -> str:
+def _coupon_section(coupon: Coupon, process: Process, setup: CommandSetup) -> str:
     width, height = coupon.outline_mm
     sizes = ", ".join(f"{1000 * d:.0f}" for d in coupon.diameters_mm)
-    command = (f"python cad/plate_from_csv.py coupon_holes.csv --width {width:.3f} --height "
-               f"{height:.3f} --thickness {coupon.thickness_mm:g} --corner-cut "
-               f"{coupon.corner_cut_mm:.3f} --out coupon.stl")
     return (
         '<section id="coupon"><h2>4. Calibration coupon (print it first)</h2>'
         + f"<p>The {_e(process.name)} numbers are planning numbers (docs/processes.md, "
@@ -311,6 +395,12 @@ def _coupon_section(coupon: Coupon, process: Process) -> str:
           f"material and settings: blocks of {coupon.repeat} x {coupon.repeat} holes at the "
           f"design's pitch ({coupon.pitch_mm:g} mm) and thickness ({coupon.thickness_mm:g} mm), "
           f"drawn diameters {sizes} um, smallest on the left (chamfer top-left).</p>"
+        + f"<p>The design folder holds it as a part: <b>{COUPON_STL}</b> (the solid, "
+          f"{width:.2f} x {height:.2f} x {coupon.thickness_mm:g} mm, for a printer), "
+          f"<b>{COUPON_SVG}</b> (1:1, seen from above, for film or a laser, drawn like "
+          f"plate.svg) and <b>{COUPON_CSV}</b> (its hole table). They need nothing beyond "
+          "aperture-fab. For a STEP B-rep to edit in CAD:</p>"
+        + _command(_coupon_command(coupon, setup), setup)
         + _figure(coupon_drawing(coupon), "The calibration coupon seen from above.")
         + "<p>Hold it against a light under a loupe or microscope. The smallest drawn size "
           "whose holes are <i>all</i> open gives min_hole_mm (its measured diameter); for each "
@@ -320,23 +410,21 @@ def _coupon_section(coupon: Coupon, process: Process) -> str:
         + "<table><tr><th>drawn (um)</th><th>all open?</th><th>measured diameter (um)</th>"
           "<th>webs intact?</th></tr>"
         + "".join(f'<tr><td class="n">{1000 * d:.0f}</td><td></td><td></td><td></td></tr>'
-                  for d in coupon.diameters_mm) + "</table>"
-        + f"<details><summary>coupon_holes.csv (save it, then run <code>{_e(command)}</code>)"
-          f"</summary><pre>{_e(coupon.holes_csv())}</pre></details></section>")
+                  for d in coupon.diameters_mm) + "</table></section>")
 
 
-def _procedure(config: Config, names: Sequence[str], folder_hint: str) -> str:
+def _procedure(config: Config, names: Sequence[str]) -> str:
     plate = config.scene.plate
     first = f"display_{names[0]}.png" if names else "the display image"
     steps = [
         "Print this sheet at 100 % (no \"fit to page\"); the scale bar must measure 50 mm.",
-        "Make the calibration coupon (section 4), measure it, update the config's [process] "
-        "table if the numbers differ, and design again.",
+        f"Make the calibration coupon ({COUPON_STL} or {COUPON_SVG}; section 4), measure it, "
+        "update the config's [process] table if the numbers differ, and design again.",
         f"Make the plate (plate.stl, or plate.svg / plate.dxf for cutting or masks). Check its "
         f"thickness ({plate.thickness_mm:g} mm), that the holes are open and the chamfer is "
         "there.",
-        f"Make the frame: python cad/mount_frame.py --design {folder_hint} --display W H "
-        "--bezel-height B --out frame.stl. Check the gap with calipers.",
+        "Make the frame with section 2's command (your display module's outline and bezel "
+        "height in it). Check the gap with calipers.",
         f"Show {first} on the panel 1:1 (section 3) and measure its size on the panel.",
         "Seat the frame on the display, centred on the image.",
         "Lay the plate in the pocket, eye-side face up, the chamfer into the frame's key "
@@ -349,14 +437,16 @@ def _procedure(config: Config, names: Sequence[str], folder_hint: str) -> str:
 
 
 def assembly_html(part: Part, config: Config, process: Process, names: Sequence[str], *,
-                  design_name: str = "design", displays: Mapping[str, bytes] | None = None
-                  ) -> str:
+                  design_name: str = "design", displays: Mapping[str, bytes] | None = None,
+                  commands: CommandSetup | None = None) -> str:
     """The assembly sheet for a part built for `config`'s scene by `process`.
 
     names: the design's target names (its display images are display_<name>.png).
-    design_name: how the page names the design (its folder, say); also used in the commands
-        it prints. displays: optional PNG bytes per name, shown as thumbnails.
+    design_name: how the page names the design (its folder, say). displays: optional PNG bytes
+    per name, shown as thumbnails. commands: where and with what the printed commands run
+    (default: "python" in a folder named design_name, the scripts in cad/).
     """
+    setup = commands if commands is not None else CommandSetup(Path(design_name))
     if part.layout.grid != config.scene.plate.cells:
         raise ValueError(f"the part's grid {part.layout.grid} is not the config's plate.cells "
                          f"{config.scene.plate.cells}; give the config the part was made with.")
@@ -376,11 +466,13 @@ def assembly_html(part: Part, config: Config, process: Process, names: Sequence[
         "drawing states its scale; this bar is 50 mm at 1:1. Measure it before trusting any "
         "drawing.</p>",
         scale_bar(),
+        f"<p>The commands on this sheet run in {_e(_where(setup))}, with the Python that has "
+        f"aperture-fab installed ({_e(setup.python)}); each says what it needs.</p>",
         _plate_section(part, config, process, facts),
-        _stack_section(config, part, design_name),
+        _stack_section(config, part, setup),
         _display_section(config, part, facts, names, displays or {}),
-        _coupon_section(coupon, process),
-        _procedure(config, names, design_name),
+        _coupon_section(coupon, process, setup),
+        _procedure(config, names),
         "<p>Generated by aperture-fab; the guide is docs/assembly.md.</p>",
     ])
     return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'

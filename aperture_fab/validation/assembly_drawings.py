@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aperture_fab.fabrication.coupon import Coupon
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import outline_points_mm
 
@@ -263,57 +264,6 @@ def placement_drawing(display_mm: tuple[float, float], pixels: tuple[int, int],
                 label, body, "placement")
 
 
-@dataclass(frozen=True)
-class Coupon:
-    """A calibration plate: a block of repeat x repeat holes per drawn diameter, left to right
-    from the smallest, at the design's pitch and thickness; the top-left corner chamfered.
-
-    diameters_mm: drawn hole diameters, ascending. pitch_mm: hole pitch in a block.
-    repeat: holes per block side. block_gap_mm: solid between blocks. margin_mm: solid at
-    the edge. thickness_mm: the design's plate thickness.
-    """
-
-    diameters_mm: tuple[float, ...]
-    pitch_mm: float
-    repeat: int
-    block_gap_mm: float
-    margin_mm: float
-    thickness_mm: float
-
-    @property
-    def block_mm(self) -> float:
-        return self.repeat * self.pitch_mm
-
-    @property
-    def outline_mm(self) -> tuple[float, float]:
-        n = len(self.diameters_mm)
-        return (n * self.block_mm + (n - 1) * self.block_gap_mm + 2 * self.margin_mm,
-                self.block_mm + 2 * self.margin_mm)
-
-    @property
-    def corner_cut_mm(self) -> float:
-        return 0.6 * self.margin_mm
-
-    def holes(self) -> list[tuple[int, int, float, float, float]]:
-        """(block, index, x_mm, y_mm, radius_mm) of every hole, outline centred on the axis."""
-        width, _ = self.outline_mm
-        rows = []
-        for b, d in enumerate(self.diameters_mm):
-            x_left = -width / 2 + self.margin_mm + b * (self.block_mm + self.block_gap_mm)
-            for i in range(self.repeat):
-                for j in range(self.repeat):
-                    x = x_left + (j + 0.5) * self.pitch_mm
-                    y = (self.repeat / 2 - i - 0.5) * self.pitch_mm
-                    rows.append((b, i * self.repeat + j, x, y, d / 2))
-        return rows
-
-    def holes_csv(self) -> str:
-        """The coupon as a holes.csv for cad/plate_from_csv.py (straight holes)."""
-        lines = ["row,col,x_mm,y_mm,radius_mm,axis_x,axis_y"]
-        lines += [f"{b},{k},{x:.6f},{y:.6f},{r:.6f},0,0" for b, k, x, y, r in self.holes()]
-        return "\n".join(lines) + "\n"
-
-
 def coupon_drawing(coupon: Coupon) -> str:
     """The coupon seen from above, to scale, each block labelled with its drawn diameter."""
     width, height = coupon.outline_mm
@@ -328,9 +278,8 @@ def coupon_drawing(coupon: Coupon) -> str:
         f'<circle cx="{_f(x)}" cy="{_f(-y)}" r="{_f(r)}"/>' for x, y, r in holes.tolist())
         + "</g>")
     for b, d in enumerate(coupon.diameters_mm):
-        x = -w2 + coupon.margin_mm + b * (coupon.block_mm + coupon.block_gap_mm) \
-            + coupon.block_mm / 2
-        body.append(_text(pen, x, h2 + 1.4 * pen.text, f"{d * 1000:.0f}"))
+        body.append(_text(pen, coupon.block_centre_x_mm(b), h2 + 1.4 * pen.text,
+                          f"{d * 1000:.0f}"))
     body.append(_text(pen, -w2, h2 + 3.0 * pen.text, "drawn hole diameter, um", "start"))
     body += _dimension(pen, (-w2, -h2), (w2, -h2), pen.pad * 0.3, f"{width:.2f} mm")
     label = f"calibration coupon, {width:.2f} x {height:.2f} mm, scale {scale_label(scale)}"
