@@ -27,6 +27,7 @@ from aperture_fab.optics.model import Renderer
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES, digit
 from aperture_fab.validation.made_part import (
+    MadeQuality,
     RegularFront,
     judge_made,
     regular_arrays,
@@ -160,6 +161,21 @@ def test_the_optimizer_plate_is_the_written_part_and_they_score_alike():
                       states, copies=2)
     theirs = judge_made(renderer, result.targets, written, shown, optics, states, copies=2)
     assert abs(float(ours.percentile(10)[0] - theirs.percentile(10)[0])) < 0.5
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.0, 60.0), min_size=1, max_size=24))
+def test_mean_mse_psnr_is_the_psnr_of_the_mean_error(psnr: list[float]) -> None:
+    """The optimizer's figure (PSNR of the mean squared error) from per-state PSNRs: equal to
+    them when they are equal, never above their mean (Jensen), never below their minimum."""
+    values = np.array(psnr)
+    quality = MadeQuality(values.reshape(1, 1, -1), 0.01)
+    mse = np.mean(10 ** (-values / 10))
+    figure = float(quality.mean_mse_psnr()[0])
+    assert figure == pytest.approx(-10 * math.log10(mse), abs=1e-9)
+    assert values.min() - 1e-9 <= figure <= values.mean() + 1e-9
+    flat = MadeQuality(np.full((1, 2, 3), values[0]), 0.01)
+    assert float(flat.mean_mse_psnr()[0]) == pytest.approx(values[0], abs=1e-9)
 
 
 # -- the light floor ----------------------------------------------------------------------------

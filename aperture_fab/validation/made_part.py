@@ -67,6 +67,12 @@ class MadeQuality:
         flat = self.psnr_db.reshape(self.psnr_db.shape[0], -1)
         return np.percentile(flat, q, axis=1, method="hazen")
 
+    def mean_mse_psnr(self) -> np.ndarray:
+        """(T,) the PSNR of the mean squared error over copies and states: the figure the
+        optimizer's expected loss gives (`optimizer.psnr` of its loss), to compare the two."""
+        flat = self.psnr_db.reshape(self.psnr_db.shape[0], -1)
+        return -10 * np.log10(np.mean(10 ** (-flat / 10), axis=1))
+
 
 def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
                displays: np.ndarray, optics: MadeOptics, states: EyeStates,
@@ -258,7 +264,8 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     block: dict[str, Any] = {
         "copies": int(part.psnr_db.shape[1]), "states": len(evaluation),
         "neglected": list(NEGLECTED),
-        "part": {"efficiency": part.efficiency, **percentiles},
+        "part": {"efficiency": part.efficiency, **percentiles,
+                 "mean_mse_psnr_db": part.mean_mse_psnr().tolist()},
         "regular": {"family": family.as_dict(), "fitted": fitted.as_dict(), "best": None},
         "margin_db": None,
     }

@@ -18,12 +18,16 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
     made_part       (optional) the part as made (process errors drawn per made copy, diffraction,
                     the material's veil) over made copies x eye states beside the best regular
                     array at least as bright: {"copies", "states", "neglected", "part":
-                    {"efficiency", "p10_db", "p50_db", "p90_db" (per target)}, "regular":
+                    {"efficiency", "p10_db", "p50_db", "p90_db", "mean_mse_psnr_db" (per target;
+                    the last: the PSNR of the mean squared error, the optimizer's figure)},
+                    "regular":
                     {"family", "fitted": per array lists, "best": {"pitch_mm", "diameter_mm",
                     "efficiency", "p10_db", ...} or null}, "margin_db": per target or null}
                     (aperture_fab.validation.made_part.made_part_block), or null
-    verdicts        [{"topic", "level" (one of LEVELS), "text"}], most important first; the first
-                    is topic EYE_TOPIC (aperture_fab.validation.verdicts.verdicts); may be empty
+    verdicts        [{"topic", "level" (one of LEVELS), "text", "fixes" (what to change, most
+                    effective first, none already applied; absent in older reports)}], most
+                    important first; the first is topic EYE_TOPIC
+                    (aperture_fab.validation.verdicts.verdicts); may be empty
     metrics         {variant: {"per_target": {name: METRICS}, "mean": METRICS}}, variants from
                     REPORT_VARIANTS (any subset, at least one); METRICS = {"mse", "psnr_db",
                     "ssim", "light_efficiency"} (see aperture_fab.metrics), each a number or null
@@ -93,7 +97,7 @@ import numpy as np
 from aperture_fab.metrics import METRIC_KEYS, summarize
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.scene import Scene
-from aperture_fab.validation.variants import EYE_VARIANTS, VARIANTS
+from aperture_fab.validation.variants import EYE_VARIANTS, SHOWN_VARIANTS, VARIANTS
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -125,34 +129,43 @@ EYE_VARIANT_LABELS: dict[str, str] = {name: str(VARIANTS[name].short) for name i
 EYE_TOPIC = "eye distribution"
 #: Verdict levels: fail (red), warn (amber), pass (green), info (a finding, no judgement).
 LEVELS: tuple[str, ...] = ("fail", "warn", "pass", "info")
-#: Figures report_html places, and the caption of each.
+#: The view panels of the "views" and "errors" figures, in the order drawn (their titles).
+_SHOWN = ", ".join(VARIANTS[v].title for v in SHOWN_VARIANTS)
+#: Figures report_html places, and the caption of each: the one place captions are written.
+#: Each says what its figure draws (tests/test_report_page.py holds them to the drawings).
 FIGURE_KEYS: dict[str, str] = {
-    "eye_map": "PSNR of the as-built part over the eyebox (pupil centre offset x, y; nominal "
-               "pupil and focus); the line is the eyebox, grey cells lie outside it.",
+    "eye_map": "PSNR of the part as built over the eyebox: one cell per pupil centre offset "
+               "(x, y), at the nominal pupil and focus, labelled with its PSNR when the grid is "
+               "small; the red line is the eyebox, grey cells lie outside it.",
     "eye_pupil": "PSNR against pupil diameter (nominal position and focus), one line per "
-                 "variant; shaded: the distribution's range of pupils.",
-    "eye_focus": "PSNR against focus in diopters (0 = infinity; nominal position and pupil), "
-                 "one line per variant; shaded: the distribution's range of focus.",
-    "eye_thumbnails": "What the eye sees through the as-built part at chosen pupil offsets "
-                      "(nominal pupil and focus), each scaled by its least-squares gain and "
-                      "labelled with its offset and the PSNR of the view as shown (clipped to "
-                      "the display's range).",
-    "views": "The target and what the eye sees through the as-built part, beside each baseline "
-             "(each view scaled by its least-squares gain), each labelled with its PSNR and "
-             "SSIM at the nominal eye point.",
-    "errors": "Error maps: |gain x view - target| per pixel (mean over colour channels), the "
-              "part as built and each baseline on one scale; labelled with the mean error.",
-    "hole_map": "The plate to scale as seen from the eye: each hole a circle of its made "
-                "diameter (colour), the outline with its alignment chamfer, mm from the axis.",
-    "loss": "Optimization loss per iteration.",
+                 "variant judged over the eye distribution; shaded: the distribution's range of "
+                 "pupils (a dashed line where it is one value).",
+    "eye_focus": "PSNR of the part as built against focus in diopters (0 = infinity; nominal "
+                 "position and pupil); shaded: the distribution's range of focus (a dashed line "
+                 "where it is one value).",
+    "eye_thumbnails": "The target, then what the eye sees through the part as built at chosen "
+                      "pupil offsets (nominal pupil and focus), each scaled by its least-squares "
+                      "gain and titled with its offset and the PSNR of the view as shown "
+                      "(clipped to the display's range).",
+    "views": "The target, then what the eye sees at the nominal eye point: " + _SHOWN + " (each "
+             "view scaled by its least-squares gain), each titled with its PSNR and SSIM.",
+    "errors": "Error maps |gain x view - target| per pixel (mean over colour channels) of "
+              + _SHOWN + ", on one scale, each titled with its PSNR, SSIM and mean error.",
+    "hole_map": "The plate as seen from the eye, mm from the axis: each hole a circle of its "
+                "made diameter (colour), the outline with its alignment chamfer. Holes too small "
+                "to see at this scale are drawn enlarged, to the width the title gives.",
+    "loss": "The optimizer's loss per iteration (the image loss after gain, with the design's "
+            "light and eye-state terms).",
     "made_front": "The part as made (star) and the regular pinhole arrays the same process "
                   "makes, judged the same way (made copies x eye states, diffraction, the "
                   "material's veil): 10th-percentile PSNR against light efficiency for a white "
                   "display. Dots: every array with elemental images (colour: pitch); dashed: "
                   "their front; squares: the rivals at the part's light with the display fitted "
                   "like the part's.",
-    "eyebox": "The as-built view at each eye position across the eyebox.",
-    "tolerance": "PSNR over manufacturing-tolerance samples; the line marks the threshold.",
+    "eyebox": "What the eye sees through the part as built from each of the scene's eye "
+              "positions (eye.positions_mm), titled with the position and its PSNR.",
+    "tolerance": "Histogram of PSNR over the tolerance samples (parts drawn with the process's "
+                 "errors, the gap's and the tilt's); the red line marks the yield threshold.",
 }
 #: The keys of tolerance.psnr_percentiles.
 PERCENTILES: tuple[str, ...] = ("5", "50", "95")
@@ -295,6 +308,10 @@ def validate_report(report: Mapping[str, Any]) -> None:
         if verdict["level"] not in LEVELS:
             raise ValueError(f"report verdicts[{i}].level = {verdict['level']!r}; allowed: "
                              f"{', '.join(LEVELS)}.")
+        fixes = verdict.get("fixes", [])
+        if not (isinstance(fixes, list) and all(isinstance(f, str) for f in fixes)):
+            raise TypeError(f"report verdicts[{i}].fixes = {fixes!r:.80} must be a list of "
+                            "strings.")
     if not report["metrics"]:
         raise ValueError("report.metrics is empty; give at least one variant.")
     for variant, block in report["metrics"].items():
@@ -402,18 +419,29 @@ def _check_eye_distribution(block: Any) -> None:
 
 @dataclass(frozen=True)
 class Verdict:
-    """One finding of the report: its topic, level (one of LEVELS) and plain-language text."""
+    """One finding of the report: its topic, level (one of LEVELS), plain-language text (what
+    was found and why it matters) and the fixes it proposes, most effective first (each one
+    change, none already applied; aperture_fab.validation.verdicts.recommended_fix picks the
+    page's recommended one)."""
 
     topic: str
     level: str
     text: str
+    fixes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise ValueError(f"verdict level {self.level!r}; allowed: {', '.join(LEVELS)}.")
 
-    def as_dict(self) -> dict[str, str]:
-        return {"topic": self.topic, "level": self.level, "text": self.text}
+    def as_dict(self) -> dict[str, Any]:
+        return {"topic": self.topic, "level": self.level, "text": self.text,
+                "fixes": list(self.fixes)}
+
+    @classmethod
+    def of(cls, block: Mapping[str, Any]) -> Verdict:
+        """A verdict from its report.json dict (older reports have no "fixes")."""
+        return cls(block["topic"], block["level"], block["text"],
+                   tuple(block.get("fixes", ())))
 
 
 def eye_headline(report: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -485,7 +513,7 @@ def build_report(
     config: Mapping[str, Any],
     versions: Mapping[str, str],
     eye_distribution: Mapping[str, Any] | None = None,
-    verdicts: Sequence[Verdict | Mapping[str, str]] = (),
+    verdicts: Sequence[Verdict | Mapping[str, Any]] = (),
     run: Mapping[str, Any] | None = None,
     photometry: Mapping[str, Any] | None = None,
     made_part: Mapping[str, Any] | None = None,
