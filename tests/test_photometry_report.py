@@ -58,9 +58,25 @@ def test_the_issues_example_is_mesopic_with_a_wider_pupil() -> None:
     verdict = light_verdict(found)
     assert verdict.level == "warn"
     for words in ("0.16 %", "0.8 cd/m2", "mesopic", "Watson and Yellott 2012",
-                  "Nothing in the design asked for light", "optimizer.min_efficiency",
-                  "about 1.0 % keeps this panel and content photopic"):
+                  "Nothing in the design asked for light", "optimizer.min_efficiency"):
         assert words in verdict.text, words
+    # the fixes, the floor first (nothing asked for light), none in the reason's text
+    assert verdict.fixes[0].startswith("Set optimizer.min_efficiency")
+    assert "about 1.0 % keeps this panel and content photopic" in verdict.fixes[0]
+    assert any("panel_luminance_cd_m2" in f for f in verdict.fixes)
+    assert any("eye.pupil_mm" in f for f in verdict.fixes)
+    assert "Fix" not in verdict.text
+
+
+def test_a_light_floor_already_set_is_raised_not_set_again() -> None:
+    verdict = light_verdict(block(floor=0.001))  # met, still mesopic
+    assert verdict.level == "warn" and verdict.fixes
+    assert not any(f.startswith("Set optimizer.min_efficiency") for f in verdict.fixes)
+    assert verdict.fixes[0].startswith("Raise the brightness floor (optimizer.min_efficiency, "
+                                       "now 0.10 %")
+    missed = light_verdict(block(0.016, floor=0.02, panel=10_000.0, pupil=2.8))
+    assert missed.level == "fail"
+    assert [f.split(" ")[0] for f in missed.fixes] == ["Design", "Lower"]
 
 
 def test_a_bright_view_with_the_right_pupil_passes() -> None:
@@ -88,7 +104,19 @@ def test_leakage_and_contrast_follow_the_optical_density() -> None:
     assert resin["leakage"]["leakage_share"] == pytest.approx(0.01 * 0.8 / 0.0016)  # 5 times
     verdict = contrast_verdict(resin)
     assert verdict.level == "warn" and "5.0 times the light through the holes" in verdict.text
-    assert "optical_density" in verdict.text  # the fix names the setting
+    assert any("etched-foil" in f for f in verdict.fixes)
+    assert any("set optimizer.min_efficiency" in f for f in verdict.fixes)
+    # an estimated optical density: measure it (the fix names the setting), unless the config
+    # already sets it; a metal process is not told to use metal; a floor is raised, not set
+    estimated = {**resin, "leakage": {**resin["leakage"], "optical_density_note": "estimate"}}
+    assert "[process] optical_density" in contrast_verdict(estimated).fixes[0]
+    measured = contrast_verdict(estimated, "resin", {"name": "resin", "optical_density": 2.0})
+    assert not any("optical_density" in f for f in measured.fixes)
+    metal = contrast_verdict(resin, "etched-foil")
+    assert not any("etched-foil" in f for f in metal.fixes)
+    floored = contrast_verdict(block(od=2.0, floor=0.001))
+    assert any("raise optimizer.min_efficiency (now 0.10 %)" in f for f in floored.fixes)
+    assert not any("set optimizer.min_efficiency" in f for f in floored.fixes)
     # just under and just over the threshold
     edge = LEAKAGE_WARN_SHARE * 0.0016 / 0.8
     assert contrast_verdict(block(od=-math.log10(edge * 0.99))).level == "pass"
@@ -156,7 +184,7 @@ def test_the_verdicts_judge_tolerance_light_and_contrast() -> None:
     inputs["tolerance"]["yield"] = 0.0
     report = build_report(**inputs, photometry=block(od=2.0, floor=0.01))
     found = {v.topic: v for v in verdicts(report)}
-    assert found["tolerance"].level == "fail" and "Fix:" in found["tolerance"].text
+    assert found["tolerance"].level == "fail" and found["tolerance"].fixes
     assert found["light"].level == "fail"
     assert found["contrast"].level == "warn"
     assert not any("The eye sees" in v.text for v in verdicts(report))  # the light verdict says it

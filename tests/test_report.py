@@ -24,6 +24,7 @@ from PIL import Image
 
 from aperture_fab.config.config import to_dict
 from aperture_fab.metrics import METRIC_KEYS
+from aperture_fab.optics.photometry import PhotometrySettings
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
@@ -32,6 +33,7 @@ from aperture_fab.validation.figures import (
     figure_thumbnails,
     figure_views,
 )
+from aperture_fab.validation.light import photometry_block
 from aperture_fab.validation.part_figures import (
     figure_errors,
     figure_hole_map,
@@ -47,7 +49,13 @@ from aperture_fab.validation.report import (
     validate_report,
     views_npz,
 )
-from aperture_fab.validation.report_html import SECTION_TITLES, report_html, verdicts
+from aperture_fab.validation.report_html import (
+    SECTION_TITLES,
+    WINDOW_WIDTH_PX,
+    report_html,
+    verdicts,
+)
+from aperture_fab.validation.verdicts import FixPlan, fix_plan
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
 PSNR = {"open": 21.4, "regular_pinholes": 25.1, "random": 18.0, "optimized": 31.8,
@@ -522,6 +530,119 @@ def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]
 
 
 # ---------------------------------------------------------------------------------------------
+# Fixes: one recommended, then the others, none already applied
+
+#: A light budget that warns (mesopic, the pupil wider than assumed) and a plate that leaks
+#: (optical density 2): photometry_block's arguments.
+DIM = {"efficiency": 0.0016, "level": 1.0, "assumed_pupil_mm": 4.0, "fov_deg": (20.0, 20.0),
+       "efficiency_weight": 0.0, "optical_density": 2.0, "optical_density_note": "estimate",
+       "open_share": 0.2}
+
+
+def failing_report(changes: dict[str, Any]) -> dict[str, Any]:
+    """A report whose judged checks all fail or warn: the part below the open display over the
+    eye distribution, the part as made below the best regular array, a low yield, a dim view
+    and a plate that leaks; with `changes` ("optimizer.<key>" or "process.name") applied to its
+    config, as the design had them."""
+    inputs = complete_inputs()
+    for p10 in (inputs["eye_distribution"]["variants"]["as_built"]["psnr_db"]["p10"],):
+        p10[:] = [EYE_P10["open"] - 2.0] * len(p10)
+    inputs["tolerance"]["yield"] = 0.2
+    made = made_block()
+    made["margin_db"] = [-2.0] * len(TARGETS)
+    config = inputs["config"]
+    for key, value in changes.items():
+        section, name = key.split(".")
+        config[section][name] = value
+    inputs["fabrication"]["process"] = config["process"]["name"]
+    floor = float(config["optimizer"]["min_efficiency"])
+    photometry = photometry_block(settings=PhotometrySettings(), min_efficiency=floor, **DIM)
+    return build_report(**inputs, made_part=made, photometry=photometry)
+
+
+def all_fixes(report: dict[str, Any]) -> list[str]:
+    return [fix for verdict in verdicts(report) for fix in verdict.fixes]
+
+
+#: (what the design already does, the config that does it, the config that does not, a fix
+#: that only the second may propose).
+APPLIED = [
+    ("designed for the eye distribution", {"optimizer.eye_states": 8},
+     {"optimizer.eye_states": 1}, "optimizer.eye_states > 1"),
+    ("tracked display", {"optimizer.tracking": "tracked"},
+     {"optimizer.tracking": "untracked"}, 'optimizer.tracking = "tracked"'),
+    ("fabrication-aware design", {"optimizer.quantize_share": 1.0},
+     {"optimizer.quantize_share": 0.0}, "optimizer.quantize_share > 0"),
+    ("photomask film", {"process.name": "photomask"}, {"process.name": "resin"},
+     'name = "photomask"'),
+    ("a light floor", {"optimizer.min_efficiency": 0.001},
+     {"optimizer.min_efficiency": 0.0}, "set optimizer.min_efficiency"),
+]
+
+
+@pytest.mark.parametrize(("applied", "not_applied", "fix"),
+                         [case[1:] for case in APPLIED], ids=[case[0] for case in APPLIED])
+def test_no_fix_the_design_already_applied_is_proposed(applied: dict[str, Any],
+                                                       not_applied: dict[str, Any],
+                                                       fix: str) -> None:
+    def proposes(report: dict[str, Any]) -> bool:
+        return any(fix.lower() in f.lower() for f in all_fixes(report))
+
+    assert proposes(failing_report(not_applied))
+    done = failing_report(applied)
+    assert not proposes(done)
+    page = report_html(done, {}, verdicts(done))
+    assert html_escaped(fix).lower() not in page.lower()
+
+
+def test_the_default_designs_fixes_leave_out_everything_it_does() -> None:
+    """The near-eye preset samples the eye distribution, designs for the process, sets a
+    light floor, on photomask film: none of that is proposed, and every check still has a fix."""
+    report = failing_report({"optimizer.eye_states": 8, "optimizer.quantize_share": 1.0,
+                             "optimizer.min_efficiency": 0.001, "process.name": "photomask"})
+    fixes = all_fixes(report)
+    for _, _, _, fix in APPLIED[:1] + APPLIED[2:]:
+        assert not any(fix.lower() in f.lower() for f in fixes), fix
+    acting = [v for v in verdicts(report) if v.level in ("fail", "warn")]
+    assert {v.topic for v in acting} == {"eye distribution", "made part", "tolerance", "light",
+                                         "contrast"}
+    assert all(v.fixes for v in acting)
+    assert all("Fix" not in v.text and "What to change" not in v.text for v in acting)
+
+
+def test_the_page_recommends_one_fix_first_then_lists_the_others() -> None:
+    report = failing_report({"optimizer.eye_states": 8})
+    lines = verdicts(report)
+    plan = fix_plan(lines)
+    # the deciding verdict: the first failing one, the eye distribution; its first fix
+    assert plan.deciding is lines[0] and lines[0].level == "fail"
+    assert plan.recommended == lines[0].fixes[0]
+    assert plan.recommended.startswith("Design again with a smaller pitch")
+    others = [fix for _, fix in plan.alternatives]
+    assert plan.recommended not in others and len(set(others)) == len(others)
+    assert set(others) | {plan.recommended} == {f for v in lines for f in v.fixes}
+    # the tracked display, proposed for two checks, is listed once
+    assert sum("tracked" in fix for fix in others) == 1
+    page = report_html(report, {}, lines)
+    verdict = page[page.index('<section id="verdict">'):page.index('<section id="made">')]
+    recommended = verdict.index('id="recommended-fix"')
+    assert recommended < verdict.index('class="verdict verdict-') < verdict.index(
+        'id="other-fixes"')
+    assert verdict.index('class="overall') < recommended
+    assert html_escaped(plan.recommended) in verdict[recommended:verdict.index("</div>",
+                                                                                recommended)]
+    for fix in [plan.recommended, *others]:
+        assert page.count(html_escaped(fix)) == 1, fix  # each fix once, in the verdict section
+
+
+def test_a_passing_report_recommends_nothing(report: dict[str, Any]) -> None:
+    lines = verdicts(report)
+    assert fix_plan(lines) == FixPlan(None, None, ())
+    page = report_html(report, {}, lines)
+    assert 'id="recommended-fix"' not in page and 'id="other-fixes"' not in page
+
+
+# ---------------------------------------------------------------------------------------------
 # The HTML page
 
 
@@ -610,8 +731,8 @@ def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
     assert "Quantization and fabrication cost 0.6 dB." in page
     # the verdict leads, then the part as made and its figure, light and contrast, then the
     # eye distribution's figures
-    assert parser.headings[:5] == ["Verdict", "Findings", "The part as made",
-                                   "Light and contrast", "Over the eye distribution"]
+    assert parser.headings[:4] == ["Verdict", "The part as made", "Light and contrast",
+                                   "Over the eye distribution"]
     assert parser.image_ids[:5] == ["fig-made_front", "fig-eye_map", "fig-eye_pupil",
                                     "fig-eye_focus", "fig-eye_thumbnails"]
     assert "Margin at equal or more light: <b>+5.0 / +5.0 dB</b>" in page
@@ -641,9 +762,10 @@ def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
     parser = PageParser()
     parser.feed(page)
     assert len(parser.images) == 1
-    # the tolerance, the eyebox and the part as made say why they are missing in their own words
+    # the tolerance and the part as made say why they are missing in their own words; the
+    # section of the eye positions, with nothing to show, is left out (and out of the contents)
     assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 4
-    assert "One nominal eye position only" in page
+    assert 'id="eyebox"' not in page and 'href="#eyebox"' not in page
     assert "The part as made not computed" in page
     assert "Tolerance analysis not computed." in page
 
@@ -657,11 +779,16 @@ def test_html_rejects_bad_figures(report: dict[str, Any]) -> None:
         report_html({k: v for k, v in report.items() if k != "mesh"}, {}, [])
 
 
-#: Appended by the browser test only: counts the images that decoded once the page has loaded.
+#: Appended by the browser test only: counts the images that decoded once the page has loaded,
+#: and measures the page's height (CSS px) in the window.
 HOOK = ("window.addEventListener('load', () => { const images = [...document.images]; "
         "document.body.dataset.imagesTotal = images.length; "
         "document.body.dataset.imagesOk = images.filter("
-        "i => i.complete && i.naturalWidth > 0).length; });")
+        "i => i.complete && i.naturalWidth > 0).length; "
+        "document.body.dataset.pageHeight = document.body.scrollHeight; });")
+#: The browser window's height (CSS px) when a page is loaded; its width is the page's
+#: WINDOW_WIDTH_PX.
+WINDOW_HEIGHT_PX = 900
 CHROMIUM = "/usr/bin/chromium"
 
 
@@ -680,8 +807,9 @@ def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:
 
 
 def chromium_dom(page: str, folder: Path) -> tuple[int, int, str]:
-    """Load `page` in headless Chromium with HOOK appended: (images decoded, images, the DOM
-    after loading)."""
+    """Load `page` in headless Chromium with HOOK appended, in a window WINDOW_WIDTH_PX wide:
+    (images decoded, images, the DOM after loading; `page_height` reads the page's height from
+    it)."""
     browser = chromium()
     # The page's Content-Security-Policy forbids scripts; let exactly this hook run, so the
     # images are also checked to load under the page's own policy.
@@ -696,6 +824,7 @@ def chromium_dom(page: str, folder: Path) -> tuple[int, int, str]:
         [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
          "--no-first-run", "--disable-background-networking", "--disable-component-update",
          "--disable-sync", f"--user-data-dir={folder / 'profile'}",
+         f"--window-size={WINDOW_WIDTH_PX},{WINDOW_HEIGHT_PX}",
          "--virtual-time-budget=5000", "--dump-dom", path.as_uri()],
         capture_output=True, text=True, timeout=120, check=False,
     )
@@ -708,6 +837,13 @@ def chromium_dom(page: str, folder: Path) -> tuple[int, int, str]:
     total = re.search(r'data-images-total="(\d+)"', result.stdout)
     assert ok and total, f"the hook did not run; stderr: {result.stderr[-2000:]}"
     return int(ok[1]), int(total[1]), result.stdout
+
+
+def page_height(dom: str) -> int:
+    """The page's height (document.body.scrollHeight, CSS px) that HOOK recorded in `dom`."""
+    found = re.search(r'data-page-height="(\d+)"', dom)
+    assert found, "the hook did not record the page's height"
+    return int(found[1])
 
 
 @pytest.mark.slow

@@ -185,7 +185,8 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
         psnr = gain_psnr_db(positions[None], targets[0][None])[0]
         figures["eyebox"] = figure_views(
             [(f"eye at ({p[0]:g}, {p[1]:g}) mm\n{psnr[k]:.1f} dB", positions[k])
-             for k, p in enumerate(config.scene.eye.positions_mm)], "As built across the eyebox")
+             for k, p in enumerate(config.scene.eye.positions_mm)],
+            "As built, from each eye position")
     if validation.tolerance is not None:
         figures["tolerance"] = figure_histogram(
             np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])

@@ -22,12 +22,18 @@ __all__ = ["PANEL_INCHES", "TITLE_FONT_SIZE", "figure_views", "figure_loss", "fi
            "wrap_to_width"]
 
 FIGURE_DPI = 100
-#: Width and height of one image panel in figure_views (inches).
-PANEL_INCHES = 2.2
-MAX_PANELS_PER_ROW = 6
+#: Width and height of one image panel in figure_views (inches): a row of MAX_PANELS_PER_ROW
+#: (the target and the seven views of the report) fits the page's width at 1280 px, one figure
+#: pixel per CSS pixel, and a 128 x 128 view shows about 1:1.
+PANEL_INCHES = 1.45
+MAX_PANELS_PER_ROW = 8
 UM_PER_MM = 1000.0
 #: Line styles for the targets of a sweep (colours tell the variants apart).
 TARGET_STYLES = ("-", "--", ":", "-.")
+#: The eyebox map's panel (inches, square) and a sweep's figure (width, height): two of them
+#: side by side fit the page at 1280 px, one figure pixel per CSS pixel.
+MAP_INCHES = 3.3
+SWEEP_INCHES = (5.6, 3.0)
 #: Value labels in the eyebox map's cells up to this many cells per side.
 MAX_LABELLED_CELLS = 9
 #: Font size (points) of panel titles in figure_views.
@@ -203,7 +209,7 @@ def figure_eyebox_map(psnr_db: np.ndarray, offsets_mm: np.ndarray, eyebox_mm: tu
     import matplotlib as mpl  # _figure checks that matplotlib is there
     from matplotlib.patches import Ellipse, Rectangle
 
-    fig = _figure(0.6 + 3.6 * count, 3.6)
+    fig = _figure(0.6 + MAP_INCHES * count, MAP_INCHES)
     cmap = mpl.colormaps["viridis"].with_extremes(bad="0.85")
     low, high = float(np.nanmin(values)), float(np.nanmax(values))
     if high - low < 0.1:
@@ -248,7 +254,7 @@ def figure_sweep(x: np.ndarray, curves: Mapping[str, np.ndarray], *, xlabel: str
     xs = _finite(x, "sweep values", 1)
     if not curves:
         raise ValueError("figure_sweep got no curves; give {label: (T, m) PSNR}.")
-    fig = _figure(6.4, 3.4)
+    fig = _figure(*SWEEP_INCHES)
     ax = fig.add_subplot()
     lo, hi = shaded
     if hi > lo:

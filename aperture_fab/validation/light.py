@@ -36,7 +36,7 @@ from aperture_fab.validation.formatting import percent, sig
 from aperture_fab.validation.report import Verdict
 
 __all__ = ["FLOOR_FAIL_SHARE", "LEAKAGE_WARN_SHARE", "PUPIL_SOURCE", "content_level",
-           "contrast_verdict", "light_verdict", "photometry_block"]
+           "contrast_verdict", "light_verdict", "lower_floor_fix", "photometry_block"]
 
 #: Leakage through the material above this share of the light through the holes: warn.
 LEAKAGE_WARN_SHARE = 0.03
@@ -49,6 +49,11 @@ PUPIL_SOURCE = ("Watson and Yellott (2012), A unified formula for light-adapted 
                 "Journal of Vision 12(10):12, doi:10.1167/12.10.12")
 LIGHT_TOPIC = "light"
 CONTRAST_TOPIC = "contrast"
+#: Processes whose plate is metal sheet or foil: opaque (a fix for leakage names one of them).
+METAL_PROCESSES = ("etched-foil", "laser")
+#: The start of a photometry warning that the [photometry] settings could not be used (the
+#: block's other warnings, the light regime and the pupil, the light verdict words itself).
+SETTINGS_WARNING = "[photometry]"
 
 
 def content_level(displays: np.ndarray) -> float:
@@ -119,6 +124,39 @@ def _pct(value: float) -> str:
     return percent(value) if value < 1 else f"{sig(value, 2)} times"
 
 
+def lower_floor_fix(floor: float) -> str:
+    """Lowering the brightness floor `floor` (> 0), in the same words wherever it is proposed
+    (so that the page lists it once)."""
+    return (f"Lower the brightness floor (optimizer.min_efficiency, now {_pct(floor)}) if the "
+            "panel is bright enough.")
+
+
+def _light_fixes(block: Mapping[str, Any], *, dark: bool, pupil: bool, missed: bool
+                 ) -> tuple[str, ...]:
+    """What to change for the light verdict's problems, most effective first, leaving out what
+    the design already does (a floor is raised or lowered, not set, when it is set)."""
+    floor, needed = block["min_efficiency"], block["photopic_efficiency"]
+    keeps = "" if needed is None else f"about {_pct(needed)} keeps this panel and content photopic"
+    fixes = []
+    if missed:
+        fixes += ["Design again with more iterations (optimizer.iterations) or a larger "
+                  "optimizer.tail_share, so that the part reaches its floor.",
+                  lower_floor_fix(floor)]
+    if dark and floor <= 0 and block["efficiency_weight"] <= 0:
+        fixes.append("Set optimizer.min_efficiency to the light efficiency the device needs"
+                     + (f" ({keeps})" if keeps else "") + " and design again.")
+    elif dark and not missed:
+        fixes.append(f"Raise the brightness floor (optimizer.min_efficiency, now {_pct(floor)}"
+                     + (f"; {keeps}" if keeps else "") + ") and design again.")
+    if dark:
+        fixes.append("Use a brighter panel, and set [photometry] panel_luminance_cd_m2 (now "
+                     f"{block['panel_luminance_cd_m2']:.3g} cd/m2) to its full-white luminance.")
+    if pupil:
+        fixes.append(f"Set eye.pupil_mm (and eye.pupil_range_mm) to the pupil at this light, "
+                     f"about {block['implied_pupil_mm']:.1f} mm, and design again.")
+    return tuple(fixes)
+
+
 def light_verdict(block: Mapping[str, Any]) -> Verdict:
     """Fail when the brightness floor is set and missed by more than FLOOR_FAIL_SHARE of it;
     warn when the view is mesopic (or darker), when the implied pupil differs from the assumed
@@ -130,39 +168,62 @@ def light_verdict(block: Mapping[str, Any]) -> Verdict:
             f"{block['view_luminance_cd_m2']:.2g} cd/m2 at the eye, "
             f"{block['retinal_illuminance_td']:.2g} td through the assumed "
             f"{block['assumed_pupil_mm']:.3g} mm pupil: {block['regime']}.")
-    problems = list(block["warnings"])
-    if abs(block["implied_pupil_mm"] - block["assumed_pupil_mm"]) <= PUPIL_TOLERANCE_MM:
+    problems = [w for w in block["warnings"] if w.startswith(SETTINGS_WARNING)]
+    dark = block["regime"] != "photopic"
+    if dark:
+        problems.append(f"The view is {block['regime']} (below {MESOPIC_UPPER_CD_M2:g} cd/m2): "
+                        "acuity and colour fall off.")
+    pupil = abs(block["implied_pupil_mm"] - block["assumed_pupil_mm"]) > PUPIL_TOLERANCE_MM
+    if pupil:
+        problems.append(f"At that light the pupil opens to about "
+                        f"{block['implied_pupil_mm']:.1f} mm (Watson and Yellott 2012), not "
+                        f"the {block['assumed_pupil_mm']:g} mm the design assumed.")
+    else:
         text += (f" At that light the pupil opens to about {block['implied_pupil_mm']:.1f} mm "
                  "(Watson and Yellott 2012).")
-    level = "pass"
-    if problems:
-        level = "warn"
-    if floor > 0 and block["meets_min_efficiency"] is False:
+    level = "warn" if problems else "pass"
+    missed = floor > 0 and block["meets_min_efficiency"] is False
+    if missed:
         short = 1.0 - efficiency / floor
         problems.append(
             f"It misses the brightness floor optimizer.min_efficiency = {_pct(floor)} by "
-            f"{_pct(short)} of it: design again with more iterations or a larger tail_share, or "
-            "lower the floor if the panel is bright enough.")
+            f"{_pct(short)} of it.")
         level = "fail" if short > FLOOR_FAIL_SHARE else "warn"
     elif floor > 0:
         text += f" It meets the brightness floor optimizer.min_efficiency = {_pct(floor)}."
     if level != "pass" and floor <= 0 and block["efficiency_weight"] <= 0:
-        needed = block["photopic_efficiency"]
-        hint = "" if needed is None else (
-            f" (about {_pct(needed)} keeps this panel and content photopic)")
-        problems.append(
-            "Nothing in the design asked for light: optimizer.efficiency_weight and "
-            "optimizer.min_efficiency are 0. Fix: set optimizer.min_efficiency to the light "
-            f"efficiency the device needs{hint}, or raise [photometry] panel_luminance_cd_m2 "
-            "if the panel is brighter.")
+        problems.append("Nothing in the design asked for light: optimizer.efficiency_weight "
+                        "and optimizer.min_efficiency are 0.")
     if not problems:
         text += (f" Photopic, and the pupil within {PUPIL_TOLERANCE_MM:g} mm of the design's.")
-    return Verdict(LIGHT_TOPIC, level, " ".join([text, *problems]))
+    fixes = () if level == "pass" else _light_fixes(block, dark=dark, pupil=pupil,
+                                                    missed=missed)
+    return Verdict(LIGHT_TOPIC, level, " ".join([text, *problems]), fixes)
 
 
-def contrast_verdict(block: Mapping[str, Any]) -> Verdict:
+def _contrast_fixes(block: Mapping[str, Any], process: str | None,
+                    process_settings: Mapping[str, Any]) -> tuple[str, ...]:
+    """What to change for too much leakage, leaving out what the design already does."""
+    leak = block["leakage"]
+    fixes = []
+    if "estimate" in leak["optical_density_note"] and "optical_density" not in process_settings:
+        fixes.append("Measure a blank of the plate's thickness and set [process] "
+                     f"optical_density (now {leak['optical_density']:g}, an estimate).")
+    fixes.append("Make the plate thicker or blacker, or coat its display side opaque.")
+    if process not in METAL_PROCESSES:
+        fixes.append(f"Make it of metal ({' or '.join(METAL_PROCESSES)}): opaque.")
+    floor = block["min_efficiency"]
+    fixes.append("Pass more light through the holes: "
+                 + (f"raise optimizer.min_efficiency (now {_pct(floor)})" if floor > 0
+                    else "set optimizer.min_efficiency") + " and design again.")
+    return tuple(fixes)
+
+
+def contrast_verdict(block: Mapping[str, Any], process: str | None = None,
+                     process_settings: Mapping[str, Any] | None = None) -> Verdict:
     """Warn when the plate material leaks more than LEAKAGE_WARN_SHARE of the light through the
-    holes; pass otherwise."""
+    holes; pass otherwise. process, process_settings: the process's name and the config's
+    [process] table, so that a fix the design already applied is not proposed."""
     leak = block["leakage"]
     share, ratio = leak["leakage_share"], leak["contrast_ratio"]
     ratio_text = "unlimited" if ratio is None or not math.isfinite(ratio) else f"{ratio:.3g}:1"
@@ -176,9 +237,6 @@ def contrast_verdict(block: Mapping[str, Any]) -> Verdict:
             f"light through the holes, a veil that limits the contrast to {ratio_text}.")
     if share is None or share > LEAKAGE_WARN_SHARE:
         return Verdict(CONTRAST_TOPIC, "warn", text + (
-            f" More than {_pct(LEAKAGE_WARN_SHARE)}: dark parts of the view turn grey. Fix: "
-            "measure a blank of the plate's thickness and set [process] optical_density; a "
-            "thicker or blacker plate, a metal process (etched-foil) or an opaque coating on "
-            "the plate's display side; or more light through the holes "
-            "(optimizer.min_efficiency)."))
+            f" More than {_pct(LEAKAGE_WARN_SHARE)}: dark parts of the view turn grey."),
+            _contrast_fixes(block, process, {} if process_settings is None else process_settings))
     return Verdict(CONTRAST_TOPIC, "pass", text + f" At most {_pct(LEAKAGE_WARN_SHARE)}.")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import base64
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from aperture_fab.validation.formatting import (
@@ -23,13 +23,33 @@ from aperture_fab.validation.formatting import (
     sig,
     table,
 )
+from aperture_fab.validation.light import SETTINGS_WARNING
 from aperture_fab.validation.report import FABRICATION_KEYS, PERCENTILES, VARIANT_LABELS
 
-__all__ = ["config_html", "display_html", "fabrication_html", "light_html", "mesh_html",
-           "metrics_html", "pairs", "png_size", "scene_html", "timings_html", "tolerance_table"]
+__all__ = ["config_html", "display_html", "fabrication_html", "figure_grid", "folded",
+           "light_html", "mesh_html", "metrics_html", "pairs", "png_size", "scene_html",
+           "side_by_side", "timings_html", "tolerance_table"]
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 UM_PER_MM = 1000.0
+#: A table of more rows than this is folded into <details> (its summary says what it holds).
+MAX_OPEN_ROWS = 12
+
+
+def figure_grid(items: Sequence[str]) -> str:
+    """Figures (or a table and a figure) side by side, as many columns as the page's width
+    holds (two at 1280 px), each scaled to its column."""
+    return '<div class="figs">' + "".join(f"<div>{item}</div>" for item in items) + "</div>"
+
+
+def side_by_side(sections: Sequence[str]) -> str:
+    """Whole sections in one row of columns (one column each on a narrow window)."""
+    return '<div class="row">' + "".join(sections) + "</div>"
+
+
+def folded(summary: str, content: str) -> str:
+    """`content` behind a one-line `summary` (escaped HTML) that opens it."""
+    return f"<details><summary>{summary}</summary>{content}</details>"
 
 
 def pairs(block: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
@@ -56,8 +76,8 @@ def metrics_html(metrics: Mapping[str, Any]) -> str:
     if len(names) > 1:
         rows = [[e(VARIANT_LABELS[v]), e(name), *cells(b["per_target"][name])]
                 for v, b in metrics.items() for name in b["per_target"]]
-        out += ["<h3>Per target</h3>", table(["variant", "target", *header], rows,
-                                             (2, 3, 4, 5))]
+        out.append(folded(f"Per target ({len(names)} targets)",
+                          table(["variant", "target", *header], rows, (2, 3, 4, 5))))
     return "".join(out)
 
 
@@ -72,8 +92,10 @@ def fabrication_html(fabrication: Mapping[str, Any]) -> str:
         rows = [[e(v["rule"]), e("plate" if v["cell"] is None else tuple(v["cell"])),
                  sig(v["value_mm"]), sig(v["limit_mm"]), e(v["resolution"])]
                 for v in violations]
-        out.append(table(["rule", "cell (row, col)", "asked (mm)", "limit (mm)", "resolution"],
-                         rows, numeric=(2, 3)))
+        listed = table(["rule", "cell (row, col)", "asked (mm)", "limit (mm)", "resolution"],
+                       rows, numeric=(2, 3))
+        out.append(listed if len(rows) <= MAX_OPEN_ROWS else
+                   folded(f"{len(rows)} rule violations, each resolved", listed))
     return "".join(out)
 
 
@@ -84,31 +106,41 @@ def mesh_html(mesh: Mapping[str, Any]) -> str:
 
 
 def timings_html(timings: Mapping[str, Any]) -> str:
+    """The total, then the seconds of each stage (folded)."""
     if not timings:
-        return f'<p class="muted">{NOT_COMPUTED}.</p>'
+        return f'<p class="muted">Timings {NOT_COMPUTED}.</p>'
     rows = [[e(stage.removesuffix("_s").replace("_", " ")),
              NOT_COMPUTED if s is None else sig(s, 2)] for stage, s in timings.items()]
     total = sum(s for s in timings.values() if s is not None)
     rows.append(["<b>total</b>", sig(total, 3)])
-    return table(["stage", "seconds"], rows, numeric=(1,))
+    return folded(f"{sig(total, 3)} s in all; by stage", table(["stage", "seconds"], rows,
+                                                               numeric=(1,)))
 
 
 def scene_html(scene: Mapping[str, Any]) -> str:
+    """The display, plate and eye as judged (folded: the config below says the same)."""
     eye = dict(scene["eye"])
     if eye["focus_mm"] is None:
         eye["focus_mm"] = "infinity"
-    return "".join(f"<h3>{e(part)}</h3>{pairs(block)}"
-                   for part, block in (("Display", scene["display"]), ("Plate", scene["plate"]),
-                                       ("Eye", eye)))
+    display, plate = scene["display"], scene["plate"]
+    summary = (f"Display {sig(display['width_mm'])} x {sig(display['height_mm'])} mm; plate "
+               f"{plate['cells'][0]} x {plate['cells'][1]} cells {sig(plate['gap_mm'])} mm in "
+               f"front of it; eye pupil {sig(eye['pupil_mm'])} mm")
+    return folded(e(summary), "".join(
+        f"<h3>{e(part)}</h3>{pairs(block)}"
+        for part, block in (("Display", display), ("Plate", plate), ("Eye", eye))))
 
 
 def tolerance_table(tolerance: Mapping[str, Any]) -> str:
+    """The yield in one line, then its figures (folded)."""
     p = tolerance["psnr_percentiles"]
     rows = [["samples", quantity("samples", tolerance["samples"])],
             ["threshold (dB)", quantity("threshold_db", tolerance["threshold_db"])],
             ["yield (above the threshold)", percent(tolerance["yield"])],
             *[[f"PSNR, {k}th percentile (dB)", quantity("psnr_db", p[k])] for k in PERCENTILES]]
-    return table(["quantity", "value"], rows, numeric=(1,))
+    summary = (f"Yield {percent(tolerance['yield'])} of {tolerance['samples']} samples above "
+               f"{quantity('threshold_db', tolerance['threshold_db'])} dB; the percentiles")
+    return folded(summary, table(["quantity", "value"], rows, numeric=(1,)))
 
 
 def light_html(photometry: Mapping[str, Any] | None) -> str:
@@ -144,19 +176,30 @@ def light_html(photometry: Mapping[str, Any] | None) -> str:
         ("contrast ratio (white over the veil)", "unlimited" if ratio is None
          else f"{sig(ratio, 2)}:1"),
     ]
-    out = [table(["light budget", "value"], [[e(k), v] for k, v in rows], (1,)),
-           f'<p class="muted">Pupil: {e(photometry["pupil_source"])}, for '
-           f"{sig(photometry['field_area_deg2'])} deg² seen by {photometry['adapted_eyes']} "
-           f"eye(s), age {photometry['observer_age_years']:g} ([photometry] settings).</p>",
-           table(["contrast", "value"], [[e(k), v] for k, v in leak_rows], (1,)),
-           '<p class="muted">Leakage = 10^-OD x (1 - open share) / light efficiency: the '
-           "material's light, a nearly uniform veil, over the holes'. Neglected: scatter off "
-           "the hole walls, reflections, the display's black level, the OD's change with "
-           "thickness (docs/validation.md).</p>"]
-    if photometry["warnings"]:
-        out.append('<ul class="warnings">' + "".join(f"<li>{e(w)}</li>"
-                                                     for w in photometry["warnings"]) + "</ul>")
-    return "".join(out)
+    contrast = "unlimited" if ratio is None else f"{sig(ratio, 2)}:1"
+    summary = (f"{percent(photometry['light_efficiency'])} of the open display's light: "
+               f"{sig(photometry['view_luminance_cd_m2'], 2)} cd/m² at the eye from a "
+               f"{sig(photometry['panel_luminance_cd_m2'])} cd/m² panel "
+               f"({e(photometry['regime'])}, pupil about {photometry['implied_pupil_mm']:.1f} "
+               f"mm); leakage {'unbounded' if share is None else percent(share)}, contrast "
+               f"{contrast}. The light budget and the contrast, in full")
+    out = [figure_grid([
+        table(["light budget", "value"], [[e(k), v] for k, v in rows], (1,))
+        + f'<p class="muted">Pupil: {e(photometry["pupil_source"])}, for '
+        f"{sig(photometry['field_area_deg2'])} deg² seen by {photometry['adapted_eyes']} "
+        f"eye(s), age {photometry['observer_age_years']:g} ([photometry] settings).</p>",
+        table(["contrast", "value"], [[e(k), v] for k, v in leak_rows], (1,))
+        + '<p class="muted">Leakage = 10^-OD x (1 - open share) / light efficiency: the '
+        "material's light, a nearly uniform veil, over the holes'. Neglected: scatter off "
+        "the hole walls, reflections, the display's black level, the OD's change with "
+        "thickness (docs/validation.md).</p>"])]
+    # The light verdict words the regime and the pupil (with its fixes); only a settings problem
+    # is left to say here.
+    settings = [w for w in photometry["warnings"] if w.startswith(SETTINGS_WARNING)]
+    if settings:
+        out.append('<ul class="warnings">' + "".join(f"<li>{e(w)}</li>" for w in settings)
+                   + "</ul>")
+    return folded(summary, "".join(out))
 
 
 def png_size(data: bytes) -> tuple[int, int]:
@@ -192,7 +235,13 @@ def display_html(displays: Mapping[str, bytes], display: Mapping[str, Any]) -> s
 
 
 def config_html(config: Mapping[str, Any], versions: Mapping[str, str]) -> str:
-    """The resolved config as (section, key, value) rows, then the package versions."""
-    return (table(["section", "key", "value"], config_rows(config))
-            + "<h3>Versions</h3>"
-            + table(["package", "version"], [[e(k), e(v)] for k, v in versions.items()]))
+    """The resolved config as (section, key, value) rows, then the package versions, each
+    folded behind a line that says what it holds."""
+    rows = config_rows(config)
+    preset = config.get("preset")
+    return (folded(f"The resolved configuration: {len(rows)} settings"
+                   + ("" if preset is None else f", preset {e(preset)}"),
+                   table(["section", "key", "value"], rows))
+            + folded("Package versions: " + e(", ".join(
+                f"{k} {v}" for k, v in versions.items() if k in ("aperture-fab", "python"))),
+                table(["package", "version"], [[e(k), e(v)] for k, v in versions.items()])))

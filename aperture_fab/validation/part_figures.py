@@ -15,6 +15,7 @@ import numpy as np
 
 from aperture_fab.metrics import gain
 from aperture_fab.validation.figures import (
+    MAX_PANELS_PER_ROW,
     PANEL_INCHES,
     TITLE_FONT_SIZE,
     _as_rgb,
@@ -23,11 +24,19 @@ from aperture_fab.validation.figures import (
     wrap_to_width,
 )
 
-__all__ = ["figure_errors", "figure_hole_map", "figure_made_front"]
+__all__ = ["MIN_HOLE_MARKER_PX", "figure_errors", "figure_hole_map", "figure_made_front"]
 
 UM_PER_MM = 1000.0
-#: The hole map's plate drawing, inches on its longer side.
-PLATE_INCHES = 6.0
+#: The hole map's plate drawing, inches on its longer side (with its colour bar, the figure
+#: fits a column of the page's two at 1280 px, at one figure pixel per CSS pixel).
+PLATE_INCHES = 4.0
+#: Every hole is drawn at least this wide (figure pixels): to scale, the smallest holes of a
+#: 20 mm plate are under a pixel, invisible. The title says how wide that is in µm.
+MIN_HOLE_MARKER_PX = 3.0
+#: The part of the colour map the holes use: its bright end, so that the smallest holes (the
+#: lowest colour) stand out from the dark plate.
+HOLE_COLOURS = (0.4, 1.0)
+PLATE_GREY = "0.15"
 #: Error maps share one scale up to this percentile of every map's errors (a few outliers do
 #: not wash the rest out).
 ERROR_SCALE_PERCENTILE = 99.5
@@ -36,8 +45,10 @@ ERROR_SCALE_PERCENTILE = 99.5
 def figure_hole_map(centres_mm: np.ndarray, radii_mm: np.ndarray,
                     outline_mm: Sequence[tuple[float, float]], *, title: str = "") -> bytes:
     """PNG of the plate to scale: each hole a circle of its diameter (colour: diameter in um),
-    the outline (a closed loop of (x, y) points, e.g. fabrication.mesh.outline_points_mm with
-    its alignment chamfer), axes in mm, x right and y up as seen from the eye.
+    but never narrower than MIN_HOLE_MARKER_PX (the title then says which holes are drawn
+    enlarged), the outline (a closed loop of (x, y) points, e.g.
+    fabrication.mesh.outline_points_mm with its alignment chamfer), axes in mm, x right and y up
+    as seen from the eye.
 
     centres_mm: (K, 2) hole centres; radii_mm: (K,) radii (> 0), K may be 0.
     """
@@ -54,7 +65,9 @@ def figure_hole_map(centres_mm: np.ndarray, radii_mm: np.ndarray,
         raise ValueError(f"hole map outline has shape {outline.shape}; expected (n >= 3, 2) "
                          "points of a closed loop.")
     import matplotlib as mpl  # _figure checks that matplotlib is there
+    from matplotlib.cm import ScalarMappable
     from matplotlib.collections import PatchCollection
+    from matplotlib.colors import ListedColormap, Normalize
     from matplotlib.patches import Circle, Polygon
 
     width = float(np.ptp(outline[:, 0]))
@@ -62,31 +75,55 @@ def figure_hole_map(centres_mm: np.ndarray, radii_mm: np.ndarray,
     scale = PLATE_INCHES / max(width, height)
     fig = _figure(max(width * scale, 3.0) + 1.6, max(height * scale, 2.5) + 0.9)
     ax = fig.add_subplot()
-    ax.add_patch(Polygon(outline, closed=True, facecolor="0.15", edgecolor="black",
+    ax.add_patch(Polygon(outline, closed=True, facecolor=PLATE_GREY, edgecolor="black",
                          linewidth=1.0, zorder=0))
-    diameters_um = 2 * radii * UM_PER_MM
-    holes = PatchCollection([Circle((x, y), r) for (x, y), r in zip(centres, radii, strict=True)],
-                            cmap=mpl.colormaps["viridis"], linewidth=0, zorder=1)
-    holes.set_array(diameters_um)
-    if diameters_um.size:
-        low, high = float(diameters_um.min()), float(diameters_um.max())
-        holes.set_clim(low - 0.5, high + 0.5) if high - low < 1 else holes.set_clim(low, high)
-    ax.add_collection(holes)
-    if diameters_um.size:
-        fig.colorbar(holes, ax=ax, label="hole diameter (µm)", shrink=0.8)
-    if len(outline) == 5:  # outline_points_mm's loop with the chamfer at points 1 and 2
-        corner = outline[1:3].mean(axis=0)
-        ax.annotate("alignment chamfer", corner, xytext=(8, -14), textcoords="offset points",
-                    color="white", fontsize=8)
     pad = 0.03 * max(width, height)
     ax.set_xlim(outline[:, 0].min() - pad, outline[:, 0].max() + pad)
     ax.set_ylim(outline[:, 1].min() - pad, outline[:, 1].max() + pad)
     ax.set_aspect("equal")
+    diameters_um = 2 * radii * UM_PER_MM
+    colours = ListedColormap(mpl.colormaps["viridis"](np.linspace(*HOLE_COLOURS, 256)))
+    norm = Normalize()
+    if diameters_um.size:
+        low, high = float(diameters_um.min()), float(diameters_um.max())
+        norm = Normalize(low - 0.5, high + 0.5) if high - low < 1 else Normalize(low, high)
+        fig.colorbar(ScalarMappable(norm, colours), ax=ax, label="hole diameter (µm)",
+                     shrink=0.8)
+    if len(outline) == 5:  # outline_points_mm's loop with the chamfer at points 1 and 2
+        corner = outline[1:3].mean(axis=0)
+        ax.annotate("alignment chamfer", corner, xytext=(8, -14), textcoords="offset points",
+                    color="white", fontsize=8)
     ax.set_xlabel("x (mm), seen from the eye")
     ax.set_ylabel("y (mm), up")
-    ax.set_title(wrap_to_width(title or f"{radii.size} holes; plate {width:.3g} x "
-                               f"{height:.3g} mm", PLATE_INCHES, 10), fontsize=10)
+    heading = title or f"{radii.size} holes; plate {width:.3g} x {height:.3g} mm"
+    # The title's second line names the floor; it is one line whatever it says, so the layout
+    # (and the floor in mm) does not depend on it.
+    ax.set_title(_hole_map_title(heading, radii.size, radii.size, 0.0), fontsize=10)
+    floor_mm = _marker_floor_mm(fig, ax)
+    drawn = np.maximum(radii, floor_mm / 2)
+    holes = PatchCollection([Circle((x, y), r) for (x, y), r in zip(centres, drawn, strict=True)],
+                            cmap=colours, norm=norm, linewidth=0, zorder=1)
+    holes.set_array(diameters_um)
+    ax.add_collection(holes)
+    enlarged = int(np.count_nonzero(radii < floor_mm / 2))
+    ax.set_title(_hole_map_title(heading, enlarged, radii.size, floor_mm), fontsize=10)
     return _png(fig)
+
+
+def _hole_map_title(heading: str, enlarged: int, holes: int, floor_mm: float) -> str:
+    """The hole map's title: `heading`, then how many holes are drawn enlarged to the floor."""
+    floor_um = f"{floor_mm * UM_PER_MM:.0f}"
+    note = (f"holes under {floor_um} µm ({enlarged} of {holes}) drawn {floor_um} µm wide"
+            if enlarged else "every hole drawn to scale")
+    return wrap_to_width(heading, PLATE_INCHES, 10) + "\n" + note
+
+
+def _marker_floor_mm(fig: Any, ax: Any) -> float:
+    """MIN_HOLE_MARKER_PX in mm on `ax` as the figure will be drawn (its layout done, the
+    axes' limits and aspect set)."""
+    fig.draw_without_rendering()
+    (x0, _), (x1, _) = ax.transData.transform([(0.0, 0.0), (1.0, 0.0)])
+    return float(MIN_HOLE_MARKER_PX / abs(x1 - x0))
 
 
 def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
@@ -108,7 +145,7 @@ def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
                              f"target has {goal.shape[:2]}.")
         maps.append(np.abs(gain(image, goal) * image - goal).mean(axis=2))
     top = float(np.percentile(np.stack(maps), ERROR_SCALE_PERCENTILE)) or 1.0
-    cols = min(len(rows), 4)
+    cols = min(len(rows), MAX_PANELS_PER_ROW)
     lines = math.ceil(len(rows) / cols)
     labels = [wrap_to_width(f"{label}\nmean {m.mean():.3f}", PANEL_INCHES * 0.95,
                             TITLE_FONT_SIZE) for (label, _), m in zip(rows, maps, strict=True)]
@@ -124,7 +161,7 @@ def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
         ax.set_title(label, fontsize=TITLE_FONT_SIZE)
         ax.set_axis_off()
         axes.append(ax)
-    fig.colorbar(shown, ax=axes, label="|gain x view - target| (linear)", shrink=0.8)
+    fig.colorbar(shown, ax=axes, label="|g view - target|", shrink=0.8)
     return _png(fig)
 
 

@@ -437,12 +437,6 @@ class Verdict:
         return {"topic": self.topic, "level": self.level, "text": self.text,
                 "fixes": list(self.fixes)}
 
-    @classmethod
-    def of(cls, block: Mapping[str, Any]) -> Verdict:
-        """A verdict from its report.json dict (older reports have no "fixes")."""
-        return cls(block["topic"], block["level"], block["text"],
-                   tuple(block.get("fixes", ())))
-
 
 def eye_headline(report: Mapping[str, Any]) -> dict[str, Any] | None:
     """The eye distribution's numbers without the maps and sweeps, with its verdict: for

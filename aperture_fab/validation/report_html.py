@@ -4,6 +4,10 @@ Pure functions, the report.json structure (aperture_fab.validation.report), its 
 (aperture_fab.validation.verdicts) and PNG figures (aperture_fab.validation.figures,
 part_figures) in, text out; the pipeline writes report.html. The sections after the lead are in
 aperture_fab.validation.page_sections.
+
+The page is short enough to read (under MAX_PAGE_HEIGHT_PX at a 1280 px wide window, checked in
+headless Chromium by the slow tests): figures side by side in grids, small sections in pairs,
+long tables folded into <details>, and a section with nothing to show left out.
 """
 
 from __future__ import annotations
@@ -20,11 +24,14 @@ from aperture_fab.validation.page_sections import (
     config_html,
     display_html,
     fabrication_html,
+    figure_grid,
+    folded,
     light_html,
     mesh_html,
     metrics_html,
     pairs,
     scene_html,
+    side_by_side,
     timings_html,
     tolerance_table,
 )
@@ -42,12 +49,15 @@ from aperture_fab.validation.verdicts import (
     EYE_MARGIN_DB,
     LEVEL_WORDS,
     NOT_JUDGED,
+    FixPlan,
     describe_distribution,
     eye_verdict,
+    fix_plan,
     verdicts,
 )
 
-__all__ = ["CSP", "EYE_MARGIN_DB", "LEVEL_WORDS", "NOT_JUDGED", "SECTION_TITLES", "eye_verdict",
+__all__ = ["CSP", "EYE_MARGIN_DB", "LEVEL_WORDS", "MAX_PAGE_HEIGHT_PX", "NOT_JUDGED",
+           "PAIRED_SECTIONS", "SECTION_TITLES", "WINDOW_WIDTH_PX", "eye_verdict",
            "overall_level", "report_html", "verdicts"]
 
 #: The page's sections, top to bottom: (id, heading).
@@ -57,12 +67,12 @@ SECTION_TITLES: tuple[tuple[str, str], ...] = (
     ("light", "Light and contrast"),
     ("eyes", "Over the eye distribution"),
     ("views", "What the eye sees"),
+    ("eyebox", "At each eye position"),
     ("errors", "Error maps"),
     ("metrics", "Image quality by variant"),
     ("plate", "Plate and hole sizes"),
     ("display", "Display content"),
     ("loss", "Optimization"),
-    ("eyebox", "Across the eyebox"),
     ("tolerance", "Manufacturing tolerance"),
     ("fabrication", "Fabrication checks"),
     ("mesh", "Mesh checks"),
@@ -70,33 +80,51 @@ SECTION_TITLES: tuple[tuple[str, str], ...] = (
     ("scene", "Scene"),
     ("config", "Configuration and versions"),
 )
+#: Sections shown side by side (a two-column row, each a column) when both are on the page,
+#: the second right after the first.
+PAIRED_SECTIONS: tuple[tuple[str, str], ...] = (
+    ("plate", "display"), ("loss", "tolerance"), ("fabrication", "mesh"), ("timings", "scene"),
+)
 #: Judged levels, worst first (info is a finding without a judgement).
 JUDGED = ("fail", "warn", "pass")
+#: The page's height (CSS px) in a WINDOW_WIDTH_PX wide window stays under this for the default
+#: design (docs/validation.md; measured in headless Chromium by the slow tests).
+MAX_PAGE_HEIGHT_PX = 6000
+WINDOW_WIDTH_PX = 1280
 
 #: Everything the page needs is inline: no script, nothing fetched; images only from data: URIs.
 CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
 CSS = """
 body { font: 15px/1.45 system-ui, sans-serif; color: #222; margin: 0; background: #fafafa; }
-main { max-width: 60rem; margin: 0 auto; padding: 1rem 1.5rem 3rem; background: #fff; }
-h1 { font-size: 1.6rem; overflow-wrap: anywhere; }
-h2 { border-bottom: 1px solid #ccc; margin-top: 2.2rem; }
+main { max-width: 76rem; margin: 0 auto; padding: 0.5rem 1.5rem 2rem; background: #fff; }
+h1 { font-size: 1.6rem; overflow-wrap: anywhere; margin: 0.6rem 0; }
+h2 { border-bottom: 1px solid #ccc; margin: 1.4rem 0 0.5rem; }
+h3 { margin: 0.8rem 0 0.3rem; } p { margin: 0.4rem 0; }
+div.row, div.figs { display: grid; grid-template-columns: repeat(auto-fit, minmax(26rem, 1fr));
+  gap: 0.3rem 1.5rem; align-items: start; }
+div.row > *, div.figs > * { min-width: 0; }
+details { margin: 0.4rem 0; } summary { cursor: pointer; color: #036; }
+div.fix { border: 2px solid #036; background: #eef4fb; padding: 0.5rem 0.8rem;
+  border-radius: 0.3rem; margin: 0.6rem 0; font-size: 1.05rem; }
+ul.fixes li, ul.findings li { margin: 0.15rem 0; }
 nav a { margin-right: 0.8rem; white-space: nowrap; }
 table { border-collapse: collapse; margin: 0.6rem 0; }
 th, td { border: 1px solid #ddd; padding: 0.2rem 0.6rem; text-align: left; }
 td.n { text-align: right; font-variant-numeric: tabular-nums; }
-figure { margin: 0.6rem 0; } figure img { max-width: 100%; height: auto; }
+figure { margin: 0.4rem 0; } figure img { max-width: 100%; height: auto; }
 figcaption, .muted { color: #666; font-size: 0.9rem; }
-ul.findings li { margin: 0.3rem 0; } code { overflow-wrap: anywhere; }
+code { overflow-wrap: anywhere; }
 .bad { color: #b00; font-weight: bold; }
 .level { font-weight: bold; padding: 0 0.3rem; border-radius: 0.2rem; color: #fff; }
 .level-fail { background: #b00; } .level-warn { background: #c70; }
 .level-pass { background: #080; } .level-info { background: #777; }
-p.verdict { border-left: 0.35rem solid #777; padding: 0.3rem 0.6rem; background: #f6f6f6; }
+p.verdict { border-left: 0.35rem solid #777; padding: 0.3rem 0.6rem; background: #f6f6f6;
+  margin: 0.4rem 0; }
 p.verdict-fail { border-color: #b00; background: #fdecec; }
 p.verdict-warn { border-color: #c70; background: #fdf4e6; }
 p.verdict-pass { border-color: #080; background: #edf7ed; }
-div.overall { font-size: 1.25rem; font-weight: bold; padding: 0.6rem 0.8rem; color: #fff;
-  border-radius: 0.3rem; margin: 0.8rem 0; }
+div.overall { font-size: 1.25rem; font-weight: bold; padding: 0.5rem 0.8rem; color: #fff;
+  border-radius: 0.3rem; margin: 0.6rem 0; }
 div.overall-fail { background: #b00; } div.overall-warn { background: #c70; }
 div.overall-pass { background: #080; } div.overall-info { background: #777; }
 .topic { font-weight: bold; }
@@ -109,6 +137,8 @@ ul.warnings li { color: #8a5200; }
 
 def _img(figures: Mapping[str, bytes], key: str, missing: str = f"Figure {NOT_COMPUTED}."
          ) -> str:
+    """The figure `key` with its caption (FIGURE_KEYS, the one place captions are written), or
+    one line saying that it is missing (and why, when `missing` says)."""
     data = figures.get(key)
     if data is None:
         return f'<p class="muted">{e(missing)}</p>'
@@ -117,6 +147,10 @@ def _img(figures: Mapping[str, bytes], key: str, missing: str = f"Figure {NOT_CO
     return (f'<figure><img id="fig-{e(key)}" alt="{e(caption)}" '
             f'src="data:image/png;base64,{encoded}">'
             f"<figcaption>{e(caption)}</figcaption></figure>")
+
+
+def _topic(topic: str) -> str:
+    return topic[:1].upper() + topic[1:]
 
 
 def _as_verdict(line: Verdict | str) -> Verdict:
@@ -128,9 +162,9 @@ def _badge(level: str) -> str:
 
 
 def _verdict_html(verdict: Verdict) -> str:
-    """A judged verdict: a coloured box with its badge, topic and text (reason and fix)."""
-    topic = (f'<span class="topic">{e(verdict.topic[:1].upper() + verdict.topic[1:])}:</span> '
-             if verdict.topic else "")
+    """A judged verdict: a coloured box with its badge, topic and text (its reason; the page
+    lists its fixes apart)."""
+    topic = f'<span class="topic">{e(_topic(verdict.topic))}:</span> ' if verdict.topic else ""
     return (f'<p class="verdict verdict-{verdict.level}">{_badge(verdict.level)}{topic}'
             f"{e(verdict.text)}</p>")
 
@@ -140,8 +174,28 @@ def overall_level(lines: Sequence[Verdict]) -> str:
     return next((level for level in JUDGED if any(v.level == level for v in lines)), "info")
 
 
+def _recommended_html(plan: FixPlan) -> str:
+    """The one recommended fix, in a box, naming the check it addresses."""
+    if plan.recommended is None or plan.deciding is None:
+        return ""
+    deciding = plan.deciding
+    return (f'<div class="fix" id="recommended-fix"><b>Recommended fix</b> (for the '
+            f"{e(deciding.topic)} check, {LEVEL_WORDS[deciding.level]}): "
+            f"{e(plan.recommended)}</div>")
+
+
+def _alternatives_html(plan: FixPlan) -> str:
+    """The other fixes the failing and warning checks propose, each with its check."""
+    if not plan.alternatives:
+        return ""
+    return ('<h3>Other fixes</h3><ul class="fixes" id="other-fixes">' + "".join(
+        f'<li><span class="topic">{e(_topic(topic))}:</span> {e(fix)}</li>'
+        for topic, fix in plan.alternatives) + "</ul>")
+
+
 def _verdict_section(lines: Sequence[Verdict]) -> str:
-    """The overall verdict, then each judged finding worst first, then the other findings."""
+    """The overall verdict, the recommended fix, each judged finding worst first, the other
+    fixes, then the findings without a judgement."""
     level = overall_level(lines)
     counts = ", ".join(f"{sum(v.level == k for v in lines)} {k}" for k in JUDGED
                        if any(v.level == k for v in lines))
@@ -149,14 +203,20 @@ def _verdict_section(lines: Sequence[Verdict]) -> str:
                 "warn": "WARN: usable, with the reservations below",
                 "pass": "PASS: every check passed",
                 "info": "No judged checks"}[level]
+    plan = fix_plan(lines)
     out = [f'<div class="overall overall-{level}">{e(headline)}'
-           + (f" ({e(counts)})" if counts else "") + "</div>"]
+           + (f" ({e(counts)})" if counts else "") + "</div>", _recommended_html(plan)]
     judged = sorted((v for v in lines if v.level != "info"), key=lambda v: LEVELS.index(v.level))
     out += [_verdict_html(v) for v in judged]
+    out.append(_alternatives_html(plan))
     findings = [v for v in lines if v.level == "info"]
     if findings:
-        out.append("<h3>Findings</h3><ul class=\"findings\">" + "".join(
-            f"<li>{e(v.text)}</li>" for v in findings) + "</ul>")
+        topics = ", ".join(dict.fromkeys(v.topic for v in findings if v.topic))
+        out.append(folded(
+            f"Findings without a judgement ({len(findings)})" + (f": {e(topics)}" if topics
+                                                                  else ""),
+            '<ul class="findings">' + "".join(f"<li>{e(v.text)}</li>" for v in findings)
+            + "</ul>"))
     return "".join(out)
 
 
@@ -213,9 +273,11 @@ def _eyes_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
     no_box = d["eyebox_mm"][0] == 0 and d["eyebox_mm"][1] == 0
     return "".join([
         _eye_table(block), pointer, note,
-        _img(figures, "eye_map", "No eyebox map: the eyebox has zero size (eyebox_mm = [0, 0])."
-             if no_box else f"Figure {NOT_COMPUTED}."),
-        _img(figures, "eye_pupil"), _img(figures, "eye_focus"), _img(figures, "eye_thumbnails"),
+        figure_grid([
+            _img(figures, "eye_map", "No eyebox map: the eyebox has zero size (eyebox_mm = "
+                 "[0, 0])." if no_box else f"Figure {NOT_COMPUTED}."),
+            _img(figures, "eye_pupil"), _img(figures, "eye_focus"),
+            _img(figures, "eye_thumbnails")]),
     ])
 
 
@@ -245,8 +307,9 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
             f"position errors drawn afresh for each) x {block['states']} eye states, with "
             "diffraction at the holes and the veil the plate's material leaks; light for a white "
             "display. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
-            "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
-            f"<th>light</th></tr>{cells}</table>{note}" + _img(figures, "made_front"))
+            + figure_grid([
+                "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
+                f"<th>light</th></tr>{cells}</table>{note}", _img(figures, "made_front")]))
 
 
 def _header(report: Mapping[str, Any], targets: Sequence[str]) -> str:
@@ -277,6 +340,25 @@ def _check_images(figures: Mapping[str, bytes], displays: Mapping[str, bytes]) -
                              "aperture_fab.io.images.encode_png.")
 
 
+def _sections(shown: Sequence[tuple[str, str]], body: Mapping[str, str | None]) -> str:
+    """The sections in order, each pair of PAIRED_SECTIONS side by side when both are shown,
+    one after the other."""
+    keys = [key for key, _ in shown]
+    html = {key: f'<section id="{key}"><h2>{e(heading)}</h2>{body[key]}</section>'
+            for key, heading in shown}
+    out: list[str] = []
+    i = 0
+    while i < len(keys):
+        pair = tuple(keys[i:i + 2])
+        if pair in PAIRED_SECTIONS:
+            out.append(side_by_side([html[k] for k in pair]))
+            i += 2
+        else:
+            out.append(html[keys[i]])
+            i += 1
+    return "\n".join(out)
+
+
 def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
                 verdicts: Sequence[Verdict | str],
                 displays: Mapping[str, bytes] | None = None) -> str:
@@ -294,7 +376,8 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
     lines = [_as_verdict(v) for v in verdicts]
     lead = next((v for v in lines if v.topic == EYE_TOPIC), None)
     tolerance = report["tolerance"]
-    body: dict[str, str] = {
+    # None: nothing to show, so the section is left out.
+    body: dict[str, str | None] = {
         "verdict": _verdict_section(lines) if lines else f'<p class="muted">{NOT_COMPUTED}.</p>',
         "made": made_html(report.get("made_part"), figures),
         "light": light_html(report.get("photometry")),
@@ -302,11 +385,13 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
         "views": _img(figures, "views"),
         "errors": _img(figures, "errors"),
         "metrics": metrics_html(report["metrics"]),
-        "plate": _img(figures, "hole_map") + pairs(report["scene"]["plate"]),
+        "plate": _img(figures, "hole_map") + folded(
+            "The plate's geometry", pairs(report["scene"]["plate"])),
         "display": display_html(displays, report["scene"]["display"]),
         "loss": _img(figures, "loss"),
-        "eyebox": _img(figures, "eyebox", "One nominal eye position only (eye.positions_mm): "
-                       "the eye distribution above shows the part across the eyebox."),
+        # Only with several eye positions (eye.positions_mm); the eye distribution covers the
+        # eyebox otherwise.
+        "eyebox": _img(figures, "eyebox") if "eyebox" in figures else None,
         "tolerance": (f'<p class="muted">Tolerance analysis {NOT_COMPUTED}.</p>'
                       if tolerance is None else
                       _img(figures, "tolerance") + tolerance_table(tolerance)),
@@ -316,9 +401,9 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
         "scene": scene_html(report["scene"]),
         "config": config_html(report["config"], report["versions"]),
     }
-    nav = " ".join(f'<a href="#{key}">{e(heading)}</a>' for key, heading in SECTION_TITLES)
-    sections = "\n".join(f'<section id="{key}"><h2>{e(heading)}</h2>{body[key]}</section>'
-                         for key, heading in SECTION_TITLES)
+    shown = [(key, heading) for key, heading in SECTION_TITLES if body[key] is not None]
+    nav = " ".join(f'<a href="#{key}">{e(heading)}</a>' for key, heading in shown)
+    sections = _sections(shown, body)
     digest = hashlib.sha256(json.dumps(json_ready(report), sort_keys=True).encode()).hexdigest()
     run = report.get("run")
     title = "aperture-fab validation report" + ("" if run is None else f": {run['part']}")

@@ -1,5 +1,7 @@
 """The report's verdicts in plain words: each finding with its level (fail, warn, pass, or info
-for a finding without a judgement), its reason and, when it is not a pass, what to change.
+for a finding without a judgement), its reason and, when it is not a pass, the fixes it
+proposes (each one change, most effective first, none that the design already applied); and
+`fix_plan`, the page's one recommended fix and the others.
 
 Pure functions, the report.json structure (aperture_fab.validation.report) in, `Verdict`s out;
 the page (aperture_fab.validation.report_html) and the terminal show them.
@@ -8,15 +10,16 @@ the page (aperture_fab.validation.report_html) and the terminal show them.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from aperture_fab.validation.light import contrast_verdict, light_verdict
-from aperture_fab.validation.report import EYE_TOPIC, Verdict
+from aperture_fab.validation.light import contrast_verdict, light_verdict, lower_floor_fix
+from aperture_fab.validation.report import EYE_TOPIC, LEVELS, Verdict
 from aperture_fab.validation.variants import EYE_BASELINES
 
 __all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
-           "YIELD_PASS", "YIELD_WARN", "describe_distribution", "eye_verdict", "made_verdict",
-           "tolerance_verdict", "verdicts"]
+           "YIELD_PASS", "YIELD_WARN", "FixPlan", "describe_distribution", "eye_verdict",
+           "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix", "verdicts"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
 HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
@@ -34,6 +37,10 @@ YIELD_WARN = 0.5
 #: (issue 22's goal); above it by less warns; below it fails.
 MADE_MARGIN_DB = 4.0
 MADE_TOPIC = "made part"
+#: The process that makes the finest holes in an opaque layer (the default process).
+FINEST_PROCESS = "photomask"
+#: Levels whose fixes the page gathers, worst first.
+ACTION_LEVELS = ("fail", "warn")
 NOT_JUDGED = ("Not judged over the eye distribution (validation.eye_states = 0): every figure "
               "below is for the nominal eye point only, which can look far better than what a "
               "moving eye sees. Set [validation] eye_states (default 32) to judge the part over "
@@ -71,25 +78,38 @@ def describe_distribution(distribution: Mapping[str, Any]) -> str:
     return ", ".join(parts)
 
 
-def _eye_advice(report: Mapping[str, Any]) -> str:
-    """What to change when the part does not beat the baselines over the eye distribution."""
+def _optimizer(report: Mapping[str, Any] | None) -> Mapping[str, Any]:
+    """The report's resolved optimizer settings ({} when unknown)."""
+    return {} if report is None else report.get("config", {}).get("optimizer", {})
+
+
+def tracked_fix(optimizer: Mapping[str, Any]) -> list[str]:
+    """A tracked display, unless the design already has one."""
+    if optimizer.get("tracking") == "tracked":
+        return []
+    return ['Use a tracked display: optimizer.tracking = "tracked", shown with `aperture-fab '
+            "display` (its content follows the tracked eye; the device needs an eye "
+            "tracker)."]
+
+
+def _eye_fixes(report: Mapping[str, Any]) -> tuple[str, ...]:
+    """What to change when the part does not beat the baselines over the eye distribution,
+    most effective first, leaving out what the design already does."""
     plate = report["scene"]["plate"]
-    optimizer = report["config"].get("optimizer", {})
+    optimizer = _optimizer(report)
     w, h = report["eye_distribution"]["distribution"]["eyebox_mm"]
-    steps = []
-    if optimizer.get("eye_states") == 1:
-        steps.append("design for the distribution rather than the nominal eye point "
-                     "(optimizer.eye_states > 1, as in the near-eye preset)")
-    steps.append(f"check that the eyebox ([eye] eyebox_mm = [{w:g}, {h:g}]), pupil_range_mm and "
-                 "focus_range_diopters describe the device; widen or shrink them only if they "
-                 "do not (a smaller eyebox than the device has only flatters the report)")
+    fixes = []
+    if int(optimizer.get("eye_states", 1)) <= 1:
+        fixes.append("Design for the eye distribution rather than the nominal eye point: "
+                     "optimizer.eye_states > 1 (8 in the near-eye preset).")
     pitch = plate["pitch_mm"]
-    steps.append(f"a smaller pitch (plate.pitch_mm, now {pitch[0]:g} x {pitch[1]:g} mm) or a "
-                 f"larger gap (plate.gap_mm, now {plate['gap_mm']:g} mm), then design again")
-    if optimizer.get("tracking") != "tracked":
-        steps.append('or a tracked display (optimizer.tracking = "tracked", shown with '
-                     "`aperture-fab display`), whose content follows the tracked eye")
-    return "What to change: " + "; ".join(steps) + "."
+    fixes.append(f"Design again with a smaller pitch (plate.pitch_mm, now {pitch[0]:g} x "
+                 f"{pitch[1]:g} mm) or a larger gap (plate.gap_mm, now {plate['gap_mm']:g} mm).")
+    fixes += tracked_fix(optimizer)
+    fixes.append(f"Check that the eyebox ([eye] eyebox_mm = [{w:g}, {h:g}]), pupil_range_mm and "
+                 "focus_range_diopters describe the device; widen or shrink them only if they "
+                 "do not (a smaller eyebox than the device has only flatters the report).")
+    return tuple(fixes)
 
 
 def eye_verdict(report: Mapping[str, Any]) -> Verdict:
@@ -137,18 +157,20 @@ def eye_verdict(report: Mapping[str, Any]) -> Verdict:
                               if any(m < 0 and key == b for m, _, key in margins))
         return Verdict(EYE_TOPIC, "fail", text + f". Its 10th percentile is below that of "
                        f"{beaten}: for the worst tenth of eye states the plate does no better "
-                       f"than {beaten}. " + _eye_advice(report))
+                       f"than {beaten}.", _eye_fixes(report))
     if low < EYE_MARGIN_DB:
         return Verdict(EYE_TOPIC, "warn", text + f". Less than {EYE_MARGIN_DB:g} dB above a "
                        "baseline at the 10th percentile: a slightly worse part or eye loses the "
-                       "advantage. " + _eye_advice(report))
+                       "advantage.", _eye_fixes(report))
     return Verdict(EYE_TOPIC, "pass", text + f". At least {EYE_MARGIN_DB:g} dB above every "
                    "baseline judged the same way, for every target.")
 
 
-def tolerance_verdict(tolerance: Mapping[str, Any]) -> Verdict:
+def tolerance_verdict(tolerance: Mapping[str, Any],
+                      optimizer: Mapping[str, Any] | None = None) -> Verdict:
     """Pass when at least YIELD_PASS of the tolerance samples score above the threshold, warn
-    from YIELD_WARN, fail below."""
+    from YIELD_WARN, fail below. optimizer: the design's optimizer settings (report.json's
+    config.optimizer), so that a fix it already applied is not proposed."""
     threshold, share = tolerance["threshold_db"], tolerance["yield"]
     text = (f"{100 * share:.0f} % of {tolerance['samples']} parts drawn with the process's "
             f"tolerances score above {threshold:.1f} dB.")
@@ -157,20 +179,48 @@ def tolerance_verdict(tolerance: Mapping[str, Any]) -> Verdict:
         text += f" Median {median:.1f} dB; 1 part in 20 scores below {low:.1f} dB."
     if share >= YIELD_PASS:
         return Verdict("tolerance", "pass", text + f" At least {100 * YIELD_PASS:.0f} %.")
-    fix = (" Fix: a process with tighter tolerances (aperture-fab processes: radius and "
-           "position sigma), larger holes (the same error costs less), fabrication-aware "
-           "design (optimizer.quantize_share > 0), or, if a loss of that size is acceptable, "
-           "a lower [validation] threshold_db.")
+    settings = {} if optimizer is None else optimizer
+    fixes = ["Choose a process with tighter tolerances (`aperture-fab processes` lists each "
+             "one's radius and position sigma).",
+             "Use larger holes: the same size error costs less."]
+    if float(settings.get("quantize_share", 0.0)) <= 0:
+        fixes.append("Design for the process: optimizer.quantize_share > 0 (fabrication-aware "
+                     "design).")
+    fixes.append(f"If a loss of that size is acceptable, lower [validation] threshold_db (now "
+                 f"{threshold:.1f} dB).")
     if share >= YIELD_WARN:
         return Verdict("tolerance", "warn", text + f" Below {100 * YIELD_PASS:.0f} %: some made "
-                       "parts will look worse than this report's nominal figures." + fix)
+                       "parts will look worse than this report's nominal figures.",
+                       tuple(fixes))
     return Verdict("tolerance", "fail", text + f" Below {100 * YIELD_WARN:.0f} %: most made "
-                   "parts will not look like this report's nominal figures." + fix)
+                   "parts will not look like this report's nominal figures.", tuple(fixes))
 
 
-def made_verdict(block: Mapping[str, Any]) -> Verdict:
+def _made_fixes(report: Mapping[str, Any] | None) -> tuple[str, ...]:
+    """What to change when the part as made does not beat the best regular array by
+    MADE_MARGIN_DB, leaving out what the design already does."""
+    optimizer = _optimizer(report)
+    process = None if report is None else report["fabrication"]["process"]
+    fixes = []
+    if process != FINEST_PROCESS:
+        fixes.append(f'Make it on printed photomask film ([process] name = "{FINEST_PROCESS}", '
+                     "the default): the finest holes the catalogue makes, in an opaque "
+                     "emulsion.")
+    iterations = optimizer.get("iterations")
+    fixes.append("Design again with more iterations (optimizer.iterations"
+                 + ("" if iterations is None else f", now {iterations}") + ").")
+    floor = float(optimizer.get("min_efficiency", 0.0))
+    if floor > 0:
+        fixes.append(lower_floor_fix(floor))
+    fixes += tracked_fix(optimizer)
+    return tuple(fixes)
+
+
+def made_verdict(block: Mapping[str, Any], report: Mapping[str, Any] | None = None) -> Verdict:
     """The part as made (process errors, diffraction, the material's veil) over made copies x
-    eye states against the best regular array the process makes at least as bright."""
+    eye states against the best regular array the process makes at least as bright.
+    report: the report holding the block, so that a fix the design already applied (its
+    process, config.optimizer) is not proposed; None proposes them all."""
     part, best = block["part"], block["regular"]["best"]
     p10 = min(part["p10_db"])
     where = (f"As made ({block['copies']} made copies x {block['states']} eye states, "
@@ -183,18 +233,16 @@ def made_verdict(block: Mapping[str, Any]) -> Verdict:
     rival = (f"the best regular array at least as bright ({best['pitch_mm']:g} mm pitch, "
              f"{1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g} % "
              f"light, display fitted) reaches {min(best['p10_db']):.1f} dB")
-    fix = (" Fix: a process that makes finer, opaque holes (photomask film is the default), "
-           "more iterations, or a lower light floor (optimizer.min_efficiency) if the panel is "
-           "bright enough; a tracked display (optimizer.tracking) gains far more.")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
                        f"{MADE_MARGIN_DB:g} dB better.")
     if margin >= 0:
         return Verdict(MADE_TOPIC, "warn", f"{where}; {rival}: only {margin:+.1f} dB, less "
                        f"than {MADE_MARGIN_DB:g} dB better: the coded plate buys little over "
-                       "a plain pinhole array." + fix)
+                       "a plain pinhole array.", _made_fixes(report))
     return Verdict(MADE_TOPIC, "fail", f"{where}; {rival}: {margin:+.1f} dB. A plain regular "
-                   "pinhole array would look better: do not make this part." + fix)
+                   "pinhole array would look better: do not make this part.",
+                   _made_fixes(report))
 
 
 def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None,
@@ -210,16 +258,18 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
     """
     lines: list[Verdict] = [eye_verdict(report)]
     if report.get("made_part") is not None:
-        lines.append(made_verdict(report["made_part"]))
+        lines.append(made_verdict(report["made_part"], report))
 
     def say(topic: str, text: str, level: str = "info") -> None:
         lines.append(Verdict(topic, level, text))
 
     if report["tolerance"] is not None:
-        lines.append(tolerance_verdict(report["tolerance"]))
+        lines.append(tolerance_verdict(report["tolerance"], _optimizer(report)))
     photometry = report.get("photometry")
     if photometry is not None:
-        lines += [light_verdict(photometry), contrast_verdict(photometry)]
+        lines += [light_verdict(photometry),
+                  contrast_verdict(photometry, report["fabrication"]["process"],
+                                   report.get("config", {}).get("process", {}))]
     head = next(((v, words) for v, words in HEADLINE_VARIANTS
                  if _mean(report, v) is not None), None)
     if head is not None:
@@ -283,3 +333,43 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
         say("mesh", "The mesh is NOT watertight: do not print it; please report this design.",
             "fail")
     return lines
+
+
+# ---------------------------------------------------------------------------------------------
+# The page's fixes
+
+
+@dataclass(frozen=True)
+class FixPlan:
+    """The fixes the page proposes: one recommended, then the others.
+
+    recommended: the first fix of the deciding verdict (the first at the worst level that
+        proposes any), or None when no failing or warning verdict proposes one.
+    deciding: the verdict the recommended fix addresses (None with it).
+    alternatives: (topic, fix) for every other fix of a failing or warning verdict, worst
+        verdict first, each fix once.
+    """
+
+    recommended: str | None
+    deciding: Verdict | None
+    alternatives: tuple[tuple[str, str], ...]
+
+
+def fix_plan(lines: Sequence[Verdict]) -> FixPlan:
+    """Gather the fixes the failing and warning verdicts propose: the deciding verdict's first
+    fix recommended, the rest after it. Each verdict leaves out the fixes the design already
+    applied, so none of them is proposed."""
+    acting = sorted((v for v in lines if v.level in ACTION_LEVELS and v.fixes),
+                    key=lambda v: LEVELS.index(v.level))
+    if not acting:
+        return FixPlan(None, None, ())
+    deciding = acting[0]
+    recommended = deciding.fixes[0]
+    seen = {recommended}
+    alternatives = []
+    for verdict in acting:
+        for fix in verdict.fixes:
+            if fix not in seen:
+                seen.add(fix)
+                alternatives.append((verdict.topic, fix))
+    return FixPlan(recommended, deciding, tuple(alternatives))
