@@ -425,11 +425,13 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
                             validated: bool, verdicts: Sequence[dict[str, str]] = ()) -> None:
     """The design table's lead: PSNR p10 / median / p90 over the eye distribution per variant
     and target, then the eye-distribution verdict (or why there is none), the part as made
-    against the best regular array and the report's other warnings and failures."""
+    against the best regular array, the report's other warnings and failures, and the fix the
+    report recommends (its others are in the report)."""
     import textwrap
 
+    from aperture_fab.validation.report import Verdict
     from aperture_fab.validation.report_html import LEVEL_WORDS, NOT_JUDGED
-    from aperture_fab.validation.verdicts import MADE_TOPIC
+    from aperture_fab.validation.verdicts import MADE_TOPIC, fix_plan
 
     headline = metrics.get("eye_distribution")
     if headline is None:
@@ -447,6 +449,13 @@ def _print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
                                             and other["topic"] != "eye distribution"):
             print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
                                 f"{other['text']}", 100, subsequent_indent="  "))
+    plan = fix_plan([Verdict(v["topic"], v["level"], v["text"], tuple(v.get("fixes", ())))
+                     for v in verdicts])
+    if plan.recommended is not None and plan.deciding is not None:
+        others = (f" ({len(plan.alternatives)} other fixes in the report)"
+                  if plan.alternatives else "")
+        print(textwrap.fill(f"recommended fix ({plan.deciding.topic}): {plan.recommended}"
+                            + others, 100, subsequent_indent="  "))
 
 
 def _print_eye_table(headline: dict[str, Any], names: Sequence[str]) -> None:

@@ -312,3 +312,18 @@ def test_the_terminal_lists_the_reports_other_warnings_and_failures(
     assert "light: WARN: The view is mesopic." in out
     assert "contrast: FAIL: Leakage." in out
     assert "Watertight" not in out and "Printed above" not in out
+
+
+def test_the_terminal_ends_with_the_recommended_fix(capsys: pytest.CaptureFixture[str]) -> None:
+    report = report_for(synthetic_eyes(OPEN_DB - 1.5))
+    _print_eye_distribution({"eye_distribution": eye_headline(report)}, NAMES, validated=True,
+                            verdicts=report["verdicts"])
+    out = " ".join(capsys.readouterr().out.split())
+    first = report["verdicts"][0]
+    assert first["topic"] == EYE_TOPIC and first["level"] == "fail"
+    others = sum(len(v["fixes"]) for v in report["verdicts"]) - 1
+    assert out.endswith(f"recommended fix (eye distribution): {first['fixes'][0]} ({others} "
+                        "other fixes in the report)")
+    assert first["fixes"][1] not in out  # the others are in the report
+    _print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
+    assert "recommended fix" not in capsys.readouterr().out  # no verdicts, no fix
