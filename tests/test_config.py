@@ -5,8 +5,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import itertools
 import json
 import math
+import re
 from typing import Any
 
 import pytest
@@ -131,6 +133,30 @@ def test_to_toml_round_trips_each_preset(name: str) -> None:
     assert round_trip(config) == config
     assert parse_toml(to_toml(config), "x") == to_dict(config)
     json.dumps(to_dict(config))  # plain values only
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_to_toml_layout(name: str) -> None:
+    # The checkpoint's config digest hashes this text, so its layout is held (a change would
+    # make checkpoints written before it refuse --resume): the header line; each key = value on
+    # one line, arrays inline; a blank line before each [table]; one newline at the end.
+    extra = {"process": {"name": "sla", "sizes": [0.1, 0.2], "note": 'a "b"\n'},
+             "validation": {"limit": 1, "views": {"diffraction": True}}}
+    config = resolve(name, file_dict=extra)
+    text = to_toml(config)
+    lines = text.split("\n")
+    assert lines[0].startswith("# aperture-fab configuration, fully resolved")
+    assert lines[1].startswith("preset = ") and lines[-1] == "" and lines[-2] != ""
+    for before, line in itertools.pairwise(lines[1:-1]):
+        if line.startswith("["):
+            assert before == "" and line.endswith("]"), line
+        else:
+            assert line == "" or re.fullmatch(r"[A-Za-z0-9_]+ = [^\[{].*|\S+ = \[.*\]", line), line
+    assert "\n\n[validation.views]\ndiffraction = true\n" in text
+    assert 'note = "a \\"b\\"\\n"\n' in text
+    eye = config.scene.eye
+    assert f"view_pixels = [{eye.view_pixels[0]}, {eye.view_pixels[1]}]\n" in text
+    assert f"fov_deg = [{eye.fov_deg[0]!r}, {eye.fov_deg[1]!r}]\n" in text
 
 
 # Pitches that fit a 20 mm display with at most 400 cells per axis.

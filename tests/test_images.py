@@ -8,6 +8,7 @@ import warnings
 import zlib
 
 import numpy as np
+import png
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -448,6 +449,18 @@ def test_encode_png_16bit_rgb_samples() -> None:
     expected = np.rint(np.vectorize(lambda v: 1.055 * v ** (1 / 2.4) - 0.055 if v > 0.0031308
                                     else 12.92 * v)(image) * 65535)
     np.testing.assert_array_equal(samples, expected)
+
+
+def test_encode_png_16bit_large_rgb_one_idat_full_precision() -> None:
+    # Over pypng's default chunk limit (1 MiB of rows), still one IDAT chunk as before pypng;
+    # pypng's reader gives the 16-bit colour samples back (Pillow reads them at 8 bits).
+    image = np.random.default_rng(9).random((3, 300, 600))
+    data = encode_png(image, bits=16)
+    assert data.count(b"IDAT") == 1
+    width, height, rows, info = png.Reader(bytes=data).read()
+    assert (width, height, info["bitdepth"], info["planes"]) == (600, 300, 16, 3)
+    samples = np.array([np.asarray(row) for row in rows]).reshape(300, 600, 3).transpose(2, 0, 1)
+    np.testing.assert_array_equal(samples, np.rint(linear_to_srgb(image) * 65535))
 
 
 @pytest.mark.parametrize(("image", "bits", "match"), [

@@ -5,7 +5,7 @@ folder and prints one SHA-256 per file. Fields that legitimately differ between 
 the same code are normalized first: stage timings and package versions, the report's digest
 of them, the 3MF zip timestamps, the manifest's time and hashes, the DXF header (dates, GUIDs),
 the STEP header date, the report's date (report.json's run.date and the page's header), the
-work folder's path.
+work folder's and the checkout's paths.
 
     python tools/output_digest.py --work /tmp/digest > before.txt
     (change the code)
@@ -31,11 +31,14 @@ REPORT_DIGEST = re.compile(r"report digest [0-9a-f]+")
 REPORT_DATE = re.compile(r'<span class="date">[^<]*</span>')
 DXF_ENTITIES = re.compile(rb"\n\s*2\r?\nENTITIES\r?\n.*?\nENDSEC", re.DOTALL)
 STEP_DATE = re.compile(rb"FILE_NAME\('([^']*)','[^']*'")
+#: The checkout that ran (two checkouts of the same code give the same digests).
+REPO = Path(__file__).resolve().parents[1]
 
 
 def normalized(path: Path, work: Path) -> bytes:
     """The file's bytes with run-to-run noise (timings, dates, the work folder) removed."""
     data = path.read_bytes().replace(str(work).encode(), b"<work>")
+    data = data.replace(str(REPO).encode(), b"<repo>")  # assembly.html's cad/ commands name it
     if path.suffix == ".3mf":
         with zipfile.ZipFile(path) as z:
             return b"".join(name.encode() + z.read(name) for name in sorted(z.namelist()))
@@ -64,8 +67,15 @@ def normalized(path: Path, work: Path) -> bytes:
     return data
 
 
+#: Exit statuses after which every file is written: OK, and the report's verdict FAIL (5) or,
+#: with --strict, WARN (6) (aperture_fab.cli's EXIT_REPORT_FAIL and EXIT_REPORT_WARN).
+WRITTEN_EXITS = (0, 5, 6)
+
+
 def run(args: list[str]) -> None:
-    subprocess.run(args, check=True, stdout=subprocess.DEVNULL)
+    done = subprocess.run(args, stdout=subprocess.DEVNULL)
+    if done.returncode not in WRITTEN_EXITS:
+        raise subprocess.CalledProcessError(done.returncode, args)
 
 
 def main() -> int:

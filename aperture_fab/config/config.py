@@ -34,7 +34,6 @@ This module reads and writes text only; the CLI reads and writes the files.
 
 from __future__ import annotations
 
-import datetime
 import difflib
 import math
 import re
@@ -43,6 +42,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
+
+import tomlkit
 
 from aperture_fab.config.presets import DEFAULT_PRESET, PRESETS
 from aperture_fab.config.settings import (
@@ -124,7 +125,6 @@ _PRESET, _FILE, _FLAG = 0, 1, 2
 _SECTION_TYPO_CUTOFF = 0.8
 _KEY_TYPO_CUTOFF = 0.6
 
-_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 _TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
 
 
@@ -271,7 +271,7 @@ def _add_overrides(layers: _Layers, overrides: Mapping[str, Any]) -> None:
 
 def _example(key: str) -> str:
     section, _, name = key.partition(".")
-    return f"{name} = {_toml_value(PRESETS[DEFAULT_PRESET][section][name])}"
+    return f"{name} = {tomlkit.item(PRESETS[DEFAULT_PRESET][section][name]).as_string()}"
 
 
 def _wrong(key: str, value: Any, where: str, expected: str) -> TypeError:
@@ -516,62 +516,16 @@ def to_dict(config: Config) -> dict[str, Any]:
     return {"preset": config.preset, **sections, **_thaw(config.extra)}
 
 
-_STRING_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n",
-                   "\f": "\\f", "\r": "\\r"}
-_DEL = 0x7F
-_FIRST_PRINTABLE = 0x20
-
-
-def _toml_string(text: str) -> str:
-    out = []
-    for ch in text:
-        if ch in _STRING_ESCAPES:
-            out.append(_STRING_ESCAPES[ch])
-        elif ord(ch) < _FIRST_PRINTABLE or ord(ch) == _DEL:  # TOML forbids raw control chars
-            out.append(f"\\u{ord(ch):04x}")
-        else:
-            out.append(ch)
-    return '"' + "".join(out) + '"'
-
-
-def _toml_key(key: str) -> str:
-    return key if _BARE_KEY.fullmatch(key) else _toml_string(key)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        return repr(value)  # shortest text that reads back to the same float
-    if isinstance(value, str):
-        return _toml_string(value)
-    if isinstance(value, (datetime.date, datetime.time)):  # datetime is a date
-        return value.isoformat()
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, Mapping):
-        items = ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items())
-        return "{ " + items + " }" if items else "{}"
-    raise TypeError(f"cannot write {value!r} ({type(value).__name__}) to TOML")
-
-
-def _toml_table(lines: list[str], path: list[str], table: Mapping[str, Any]) -> None:
-    for key, value in table.items():
-        if not isinstance(value, Mapping):
-            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
-    for key, value in table.items():
-        if isinstance(value, Mapping):
-            lines.append("")
-            lines.append("[" + ".".join(_toml_key(p) for p in [*path, key]) + "]")
-            _toml_table(lines, [*path, key], value)
+#: The first line of a written config.
+TOML_HEADER = ("# aperture-fab configuration, fully resolved: every value explicit (fov_deg in "
+               "degrees).")
 
 
 def to_toml(config: Config) -> str:
     """The fully resolved config as TOML text; resolving the parsed text gives `config` back."""
-    lines = [
-        "# aperture-fab configuration, fully resolved: every value explicit (fov_deg in degrees).",
-    ]
-    _toml_table(lines, [], to_dict(config))
-    return "\n".join(lines) + "\n"
+    # tomlkit writes a table's keys one per line before its sub-tables, arrays on one line,
+    # floats as repr (the shortest text that reads back to the same float) and escapes what
+    # TOML requires. The checkpoint's config digest (pipeline.design_job.input_digests) hashes
+    # this text: tests/test_config.py holds the layout, so a tomlkit upgrade that changed it
+    # is seen before it makes checkpoints refuse --resume.
+    return f"{TOML_HEADER}\n{tomlkit.dumps(to_dict(config))}"

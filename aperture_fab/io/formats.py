@@ -100,6 +100,11 @@ def _unit_normals(mesh: PlateMesh) -> np.ndarray:
     return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
 
 
+# Binary STL is one numpy record array, as numpy-stl and trimesh hold it inside; both were
+# measured (issue 21) and neither kept: numpy-stl stamps the time into the header (no two files
+# alike), writes normals that are not unit length and needs python-utils; trimesh (4.8 MB)
+# writes a blank header, and reading with it merges vertices to a tolerance (process=True, 5x
+# slower than read_stl on 0.5 M triangles), where read_stl merges exactly equal float32 bits.
 def stl_bytes(mesh: PlateMesh) -> bytes:
     """Binary STL (little-endian float32, mm) with per-facet unit normals."""
     records = np.zeros(len(mesh.faces), dtype=STL_RECORD)
@@ -187,6 +192,9 @@ def _split_once(text: str, marker: str) -> tuple[str, str]:
     return before, after
 
 
+# lib3mf (6.9 MB, native) was measured (issue 21) and not kept: its Python binding builds a
+# ctypes object per vertex and triangle (21 s against 2.6 s here for 0.5 M triangles) and it
+# stores coordinates as float32; the core 3MF package is three small XML parts.
 def threemf_bytes(mesh: PlateMesh) -> bytes:
     """3MF package (zip) holding the mesh as one object, unit millimetre."""
     try:
@@ -386,6 +394,8 @@ def svg_text(layout: HoleLayout, polarity: Polarity, corner_cut_mm: float = 0.0)
     plate, hole = ("white", "black") if polarity == "holes_black" else ("black", "white")
     width, height = layout.outline_mm
     mm = f"%.{MM_DECIMALS}f"
+    # Text, not an SVG library: only numbers and fixed colour names go in (nothing to escape),
+    # and the circles are formatted in batches like the 3MF's vertices.
     # SVG y grows downward: svg = (x + width / 2, height / 2 - y).
     outline = " ".join(
         f"{x + width / 2:.{MM_DECIMALS}f},{height / 2 - y:.{MM_DECIMALS}f}"
