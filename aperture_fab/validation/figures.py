@@ -34,6 +34,8 @@ TARGET_STYLES = ("-", "--", ":", "-.")
 #: side by side fit the page at 1280 px, one figure pixel per CSS pixel.
 MAP_INCHES = 3.3
 SWEEP_INCHES = (5.6, 3.0)
+#: The loss and the tolerance histogram (width, height), side by side on the page.
+PLOT_INCHES = (5.0, 2.8)
 #: Value labels in the eyebox map's cells up to this many cells per side.
 MAX_LABELLED_CELLS = 9
 #: Font size (points) of panel titles in figure_views.
@@ -143,7 +145,7 @@ def figure_loss(history: np.ndarray) -> bytes:
     values = np.asarray(history, dtype=np.float64)
     if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
         raise ValueError(f"loss history has shape {values.shape}; expected finite (N,), N >= 1.")
-    fig = _figure(5.0, 3.2)
+    fig = _figure(*PLOT_INCHES)
     ax = fig.add_subplot()
     ax.plot(np.arange(1, values.size + 1), values)
     if values.min() > 0:
@@ -160,7 +162,7 @@ def figure_histogram(values: np.ndarray, threshold: float | None) -> bytes:
     if data.ndim != 1 or data.size == 0 or not np.all(np.isfinite(data)):
         raise ValueError(f"histogram values have shape {data.shape}; expected finite (N,), "
                          "N >= 1.")
-    fig = _figure(5.0, 3.2)
+    fig = _figure(*PLOT_INCHES)
     ax = fig.add_subplot()
     ax.hist(data, bins="auto", color="0.4")
     if threshold is not None:

@@ -82,9 +82,14 @@ def metrics_html(metrics: Mapping[str, Any]) -> str:
 
 
 def fabrication_html(fabrication: Mapping[str, Any]) -> str:
+    """The holes and webs in one line (the full table folded), then the rule violations."""
     known = {k: fabrication[k] for k in FABRICATION_KEYS if k != "violations"}
     others = {k: v for k, v in fabrication.items() if k not in FABRICATION_KEYS}
-    out = [pairs({**known, **others})]
+    hole, web = fabrication["smallest_hole_diameter_mm"], fabrication["smallest_web_mm"]
+    summary = (f"{quantity('holes', fabrication['holes'])} holes, {e(fabrication['process'])}; "
+               f"smallest hole {quantity('smallest_hole_diameter_mm', hole)} mm, smallest web "
+               f"{quantity('smallest_web_mm', web)} mm")
+    out = [folded(summary, pairs({**known, **others}))]
     violations = fabrication["violations"]
     if not violations:
         out.append("<p>No rule violations.</p>")
@@ -100,9 +105,12 @@ def fabrication_html(fabrication: Mapping[str, Any]) -> str:
 
 
 def mesh_html(mesh: Mapping[str, Any]) -> str:
+    """Watertight or not, in one line (the mesh's figures folded)."""
     verdict = ("watertight" if mesh["watertight"]
                else '<span class="bad">NOT watertight: do not print</span>')
-    return f"<p>The mesh is {verdict}.</p>" + pairs(mesh)
+    return (f"<p>The mesh is {verdict}.</p>"
+            + folded(f"Genus {quantity('genus', mesh['genus'])}, "
+                     f"{quantity('triangles', mesh['triangles'])} triangles", pairs(mesh)))
 
 
 def timings_html(timings: Mapping[str, Any]) -> str:

@@ -37,6 +37,8 @@ MIN_HOLE_MARKER_PX = 3.0
 #: lowest colour) stand out from the dark plate.
 HOLE_COLOURS = (0.4, 1.0)
 PLATE_GREY = "0.15"
+#: The part-as-made figure (width, height): a column of the page at 1280 px, 1:1.
+FRONT_INCHES = (5.6, 3.8)
 #: Error maps share one scale up to this percentile of every map's errors (a few outliers do
 #: not wash the rest out).
 ERROR_SCALE_PERCENTILE = 99.5
@@ -173,7 +175,7 @@ def figure_made_front(block: Mapping[str, Any], title: str = "The part as made a
     part as made."""
     family, fitted = block["regular"]["family"], block["regular"]["fitted"]
     part = block["part"]
-    fig = _figure(6.4, 4.0)
+    fig = _figure(*FRONT_INCHES)
     ax = fig.add_subplot()
     eff = np.asarray(family["efficiency"]) * 100
     p10 = np.asarray(family["p10_db"])

@@ -303,13 +303,13 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
     note = ("" if margin is None else
             f"<p>Margin at equal or more light: <b>{' / '.join(f'{m:+.1f}' for m in margin)} "
             "dB</b> (per target).</p>")
-    return (f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "
-            f"position errors drawn afresh for each) x {block['states']} eye states, with "
-            "diffraction at the holes and the veil the plate's material leaks; light for a white "
-            "display. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
-            + figure_grid([
-                "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
-                f"<th>light</th></tr>{cells}</table>{note}", _img(figures, "made_front")]))
+    return figure_grid([
+        f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "
+        f"position errors drawn afresh for each) x {block['states']} eye states, with "
+        "diffraction at the holes and the veil the plate's material leaks; light for a white "
+        "display. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
+        "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
+        f"<th>light</th></tr>{cells}</table>{note}", _img(figures, "made_front")])
 
 
 def _header(report: Mapping[str, Any], targets: Sequence[str]) -> str:
