@@ -373,6 +373,74 @@ def _cmd_processes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _makeable_flags(process: Any, scene: Any) -> tuple[list[str], str]:
+    """The design flags that give `process` a plate it makes (rules.makeable_settings; [] when
+    it makes this one), and a note for what no flag sets (a non-square pitch: --pitch-mm gives
+    square cells)."""
+    from aperture_fab.fabrication.rules import makeable_settings
+
+    flags: list[str] = []
+    note = ""
+    for key, value in makeable_settings(process, scene.plate, scene.eye.eye_relief_mm).items():
+        if key == "plate.thickness_mm":
+            flags += ["--thickness-mm", f"{value:g}"]
+        elif key == "plate.cells":
+            flags += ["--cells", *(str(n) for n in value)]
+        elif value[0] == value[1]:  # plate.pitch_mm, square
+            flags += ["--pitch-mm", f"{value[0]:g}"]
+        else:
+            note = (f", with [plate] pitch_mm = [{value[0]:g}, {value[1]:g}] in the --config "
+                    "file (--pitch-mm gives square cells)")
+    return flags, note
+
+
+def _refuse_unmakeable(process: Any, scene: Any, command: list[str], why: str = "") -> None:
+    """Raise check_plate's UnmakeableError for a scene's plate `process` cannot make, completed
+    with `why` and the design command (`command` plus the flags of _makeable_flags) that makes
+    a plate it can."""
+    import shlex
+
+    from aperture_fab.fabrication.process import UnmakeableError
+    from aperture_fab.fabrication.rules import check_plate
+
+    try:
+        check_plate(process, scene.plate, scene.eye.eye_relief_mm)
+    except UnmakeableError as err:
+        flags, note = _makeable_flags(process, scene)
+        if not flags and not note:
+            raise
+        raise UnmakeableError(
+            f"{err}{why} Design a plate {process.name} makes: `{shlex.join([*command, *flags])}`"
+            f"{note}; or give --force to write this plate anyway, its broken rules listed."
+        ) from None
+
+
+def _refuse_unmakeable_export(args: argparse.Namespace, config: Any, fabrication: Any,
+                              config_path: Path) -> None:
+    """Refuse an export whose process cannot make the design's plate, naming the design
+    command that makes a plate for it: the holes were optimized through this plate (its
+    thickness, its cells), so export cannot change the plate honestly."""
+    import json
+
+    plate = config.scene.plate
+    name = fabrication.process.name
+    folder = args.design.parent
+    try:
+        targets = json.loads((folder / "design.json").read_text())["targets"]
+        which = f", in its order: {', '.join(targets)}"
+    except (OSError, ValueError, KeyError, TypeError):
+        which = ""
+    pitch = " x ".join(f"{p:g}" for p in plate.pitch_mm)
+    command = ["aperture-fab", "design", "TARGET", "--config", str(config_path),
+               "--process", name, "--out", str(folder.with_name(f"{folder.name}-{name}"))]
+    _refuse_unmakeable(
+        fabrication.process, config.scene, command,
+        f" {args.design} holds open fractions optimized through its own "
+        f"{plate.thickness_mm:g} mm plate of {pitch} mm cells (the hole walls clip oblique "
+        "light by the thickness; the cells are the design's grid), so export cannot re-make "
+        f"them in another plate. TARGET: the image(s) the design was made for{which}.")
+
+
 def _cmd_export(args: argparse.Namespace) -> int:
     from aperture_fab.config.config import parse_toml, resolve
     from aperture_fab.fabrication.part import make_part
@@ -394,6 +462,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
                      file_source=str(config_path))
     check_sources(config_path, args.design, "design")
     fabrication = _fabrication(args, config.extra)  # the process design.toml records, or --process
+    if not fabrication.force:
+        _refuse_unmakeable_export(args, config, fabrication, config_path)
     # An --out that names a part file writes that one file, under the name given (its folder
     # is its parent); any other --out is a folder that gets every format.
     folder = output_folder(args.out.parent if named else args.out)
@@ -540,6 +610,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
     config = _load_config(args)
     fabrication = _fabrication(args, config.extra)
+    if not fabrication.force:  # refused before any work, with the flags that make it possible
+        _refuse_unmakeable(fabrication.process, config.scene, args.command_line)
     validation = None if args.no_validate else validation_settings(
         config.extra, {"tolerance_samples": args.tolerance_samples,
                        "mesh_samples": args.mesh_samples})

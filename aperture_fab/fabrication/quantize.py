@@ -230,6 +230,13 @@ def made_sizes(plate: Plate, process: Process, eye_distance_mm: float | None = N
         return math.pi * np.clip(r + process.radius_bias_mm, 0, None) ** 2 / cell
 
     if sizes.radii_mm is None:
+        if top <= 0:  # check_plate passed at mid-plane: the tilted top face has less room
+            need = (2 * r_lo + rng.web_mm) / top_scale
+            raise UnmakeableError(
+                f"process {process.name!r}: no hole of {2 * r_lo:.3g} mm or more fits a "
+                f"{min(plate.pitch_mm):g} mm cell at the plate's top face (chief-ray holes: the "
+                f"grid there is {top_scale:.4g} x the mid-plane's) with its {rng.web_mm:.3g} mm "
+                f"web; give plate.pitch_mm above {need:.4g} mm, or hole_axis = \"straight\".")
         lo, hi = made(np.array([r_lo, top]))
         return MadeSizes(None, float(lo), float(hi))
     radii = np.array([r for r in sizes.radii_mm if r <= top + EPS_MM])

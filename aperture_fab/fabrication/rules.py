@@ -5,7 +5,8 @@ The thickness rules themselves are the process's (Process.min_hole_for, Process.
 from them come the pitch that fits the smallest hole plus a web (min_pitch_mm), the radius range
 of a cell (hole_radius_bounds, open_fraction_bounds; radius_range for quantization, relaxed when
 forced past a pitch no hole fits), and the outline margin (resolve_margin_mm). check_plate
-refuses a plate the process cannot make at all, naming the presets that could.
+refuses a plate the process cannot make at all, naming the presets that could and the plate
+settings with which this process could (makeable_settings).
 
 Which rules a layout breaks (layout_violations): for a part edited by hand, where nothing is
 resolved (quantization resolves what it breaks itself; see aperture_fab.fabrication.quantize).
@@ -14,7 +15,8 @@ resolved (quantization resolves what it breaks itself; see aperture_fab.fabricat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +30,7 @@ __all__ = [
     "hole_radius_bounds",
     "layout_violations",
     "makeable_processes",
+    "makeable_settings",
     "min_pitch_mm",
     "open_fraction_bounds",
     "radius_range",
@@ -44,6 +47,12 @@ UNRESOLVED = "not changed: validated as given"
 MIN_MARGIN_MM = 1.0
 #: When forced past a pitch no hole fits, holes may grow to this share of the pitch (radius).
 FORCED_MAX_RADIUS_FRACTION = 0.45
+#: A pitch that makeable_settings grows holds holes up to this many times the smallest hole's
+#: diameter: at the bare minimum pitch every hole would be the smallest one (a regular array,
+#: nothing left to design), and a chief-ray hole's tilted top face would have no room at all.
+SUGGESTED_SIZE_RANGE = 1.5
+#: makeable_settings rounds a grown pitch up to this step, mm.
+SUGGESTED_PITCH_STEP_MM = 0.01
 
 
 def _largest_radius_mm(pitch_mm: float, web_mm: float) -> float:
@@ -175,11 +184,76 @@ def _pitch_alternatives(plate: Plate, exclude: str) -> str:
     return "no preset process can make cells this small"
 
 
-def check_plate(process: Process, plate: Plate) -> None:
+def _smallest_made_diameter_mm(process: Process, thickness_mm: float) -> float:
+    """The smallest hole diameter (mm) the process makes in a plate of this thickness: its
+    minimum, rounded up to its radius step or to its next available size."""
+    d = process.min_hole_for(thickness_mm)
+    if process.hole_sizes_mm:
+        return min((size for size in process.hole_sizes_mm if size >= d), default=d)
+    step = process.radius_step_mm
+    return 2 * math.ceil(d / 2 / step - 1e-9) * step if step > 0 else d
+
+
+def makeable_settings(process: Process, plate: Plate, eye_relief_mm: float | None = None
+                      ) -> dict[str, Any]:
+    """The plate settings to change, as dotted config keys, so that `process` can make the
+    plate; {} when it can as it is. The rest of the plate is kept.
+
+    A thickness outside the process's range moves to the nearest end of it. A pitch too small
+    for the smallest hole plus a web grows, both axes by one factor, to hold holes from the
+    smallest up to SUGGESTED_SIZE_RANGE x its diameter (rounded up to SUGGESTED_PITCH_STEP_MM),
+    and the cell count shrinks so that the grid stays within its former extent (it still fits
+    the display and the outline). With eye_relief_mm, chief-ray holes keep room for the smallest
+    hole at the top face too, where their grid is 1 - t / (2 (eye relief + t / 2)) of the
+    mid-plane's. Those are new design settings: a design's open fractions were optimized for
+    its own plate, so they need a new design, not a new export.
+    """
+    changes: dict[str, Any] = {}
+    t = plate.thickness_mm
+    if not process.accepts_thickness(t):
+        lo, hi = process.thickness_range_mm
+        t = lo if t < lo else hi
+        changes["plate.thickness_mm"] = t
+    top_scale = 1.0
+    if plate.hole_axis == "chief_ray" and eye_relief_mm is not None:
+        top_scale = 1.0 - t / (2 * (eye_relief_mm + t / 2))
+    if min_pitch_mm(process, t) > min(plate.pitch_mm) * top_scale:
+        hole, web = _smallest_made_diameter_mm(process, t), process.min_web_for(t)
+        room = max(SUGGESTED_SIZE_RANGE * hole + web, (hole + web) / top_scale)
+        scale = room / min(plate.pitch_mm)
+        step = SUGGESTED_PITCH_STEP_MM
+        pitch = [round(math.ceil(p * scale / step - 1e-9) * step, 6) for p in plate.pitch_mm]
+        cells = [max(1, math.floor(n * old / new + 1e-9))
+                 for n, old, new in zip(plate.cells, plate.pitch_mm, pitch, strict=True)]
+        changes["plate.pitch_mm"] = pitch
+        changes["plate.cells"] = cells
+    return changes
+
+
+def _settings_text(process: Process, plate: Plate, eye_relief_mm: float | None) -> str:
+    """The makeable_settings of a refused plate as a sentence for check_plate's message."""
+    changes = makeable_settings(process, plate, eye_relief_mm)
+    if not changes:
+        return ""
+    new = replace(plate, thickness_mm=changes.get("plate.thickness_mm", plate.thickness_mm),
+                  pitch_mm=tuple(changes.get("plate.pitch_mm", plate.pitch_mm)),
+                  cells=tuple(changes.get("plate.cells", plate.cells)))
+    try:
+        check_plate(process, new)
+    except UnmakeableError:  # not expected (tests check every process); say nothing wrong
+        return ""
+    keys = ", ".join(f"{key} = {value:g}" if isinstance(value, float) else
+                     f"{key} = [{', '.join(f'{v:g}' for v in value)}]"
+                     for key, value in changes.items())
+    return f"; {process.name} makes the plate designed with {keys} (the rest kept)"
+
+
+def check_plate(process: Process, plate: Plate, eye_relief_mm: float | None = None) -> None:
     """Raise UnmakeableError (a ValueError) if the process cannot make this plate at all.
 
     Checks the thickness range and that the smallest hole plus its web fits the cell pitch.
-    The message gives the allowed values and the presets that would accept the plate.
+    The message gives the allowed values, the presets that would accept the plate and the
+    settings with which this process would (makeable_settings, given eye_relief_mm).
     """
     problems = []
     t = plate.thickness_mm
@@ -203,7 +277,8 @@ def check_plate(process: Process, plate: Plate) -> None:
             f"{_pitch_alternatives(plate, process.name)}"
         )
     if problems:
-        raise UnmakeableError("; ".join(problems) + ".")
+        raise UnmakeableError("; ".join(problems) + _settings_text(process, plate, eye_relief_mm)
+                              + ".")
 
 
 def _cell_rule(rule: str, layout: HoleLayout, broken: np.ndarray, values: np.ndarray,

@@ -106,7 +106,12 @@ def _logit(x: torch.Tensor) -> torch.Tensor:
 
 
 def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Tensor,
-                   settings: OptimizerSettings, bounds: tuple[float, float]) -> dict[str, Any]:
+                   settings: OptimizerSettings, bounds: tuple[float, float],
+                   smallest_made: float = 0.0) -> dict[str, Any]:
+    """The starting state. smallest_made: the smallest open fraction the process makes (0:
+    any); the pinhole start's holes are at least that, or the snapped plate would start
+    closed, black, with no gradient to open it (laser, fdm: their smallest hole is above the
+    scene's optimal pinhole)."""
     lo, hi = bounds
     rows, cols = scene.plate.cells[1], scene.plate.cells[0]
     gen = torch.Generator().manual_seed(settings.seed)
@@ -116,7 +121,7 @@ def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.T
     elif settings.init == "uniform":
         share = torch.full((rows, cols), 0.5, dtype=torch.float64)
     else:
-        array = regular_pinholes(scene, min_fraction=lo)
+        array = regular_pinholes(scene, min_fraction=max(lo, smallest_made))
         a = torch.as_tensor(array.open_fraction)
         share = torch.where(a > 0, (a - lo) / (hi - lo), torch.full_like(a, INIT_CLOSED_SHARE))
         share = share.clamp(INIT_CLOSED_SHARE, 1 - INIT_CLOSED_SHARE)
@@ -336,7 +341,7 @@ def optimize(
         state = copy.deepcopy(state)  # a checkpoint stays valid to resume from again
     else:
         state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
-                               (lo, hi))
+                               (lo, hi), 0.0 if made is None else made.lo)
     renderer = Renderer(scene, device=device, dtype=dtype)
     mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)
     params = [mask_logits]

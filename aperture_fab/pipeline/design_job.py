@@ -142,7 +142,8 @@ def design(
     bounds = made = optics = None
     if fabrication is not None:
         if not fabrication.force:
-            check_plate(fabrication.process, scene.plate)  # refuse before optimizing
+            # Refused before optimizing, naming the settings with which the process makes it.
+            check_plate(fabrication.process, scene.plate, scene.eye.eye_relief_mm)
             if settings.quantize_share > 0:
                 made = made_sizes(scene.plate, fabrication.process, scene.mid_plane_distance_mm)
                 optics = made_optics(scene, fabrication.process)
