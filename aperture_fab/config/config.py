@@ -396,9 +396,11 @@ def _thaw(value: Any) -> Any:
 
 def _pin_ranges(eye_args: dict[str, Any], layers: _Layers) -> None:
     """A nominal set in a higher layer than its range, outside it, makes the range nominal."""
-    nominals = {"eye.pupil_mm": eye_args["pupil_mm"],
-                "eye.focus_mm": 0.0 if eye_args["focus_mm"] is None
-                else 1000.0 / eye_args["focus_mm"]}
+    focus_mm = eye_args["focus_mm"]
+    # A focus of 0 mm (which the Eye refuses, naming it) is infinitely many diopters.
+    focus_diopters = (0.0 if focus_mm is None else math.inf if focus_mm == 0
+                      else 1000.0 / focus_mm)
+    nominals = {"eye.pupil_mm": eye_args["pupil_mm"], "eye.focus_mm": focus_diopters}
     for range_key, nominal_key in _RANGE_NOMINALS.items():
         name = range_key.partition(".")[2]
         bounds, value = eye_args[name], nominals[nominal_key]

@@ -123,8 +123,8 @@ class OptimizerSettings:
                 raise ValueError(f"{name} = {value} is out of range; allowed: >= {low}.")
         if not (math.isfinite(self.efficiency_weight) and self.efficiency_weight >= 0):
             raise ValueError(
-                f"optimizer.efficiency_weight = {self.efficiency_weight!r} must be >= 0 "
-                "(0 ignores the light level)."
+                f"optimizer.efficiency_weight = {self.efficiency_weight!r} is out of range; "
+                "allowed: a finite number >= 0 (0 ignores the light level)."
             )
         if self.min_efficiency > 0 and self.tracking == "tracked":
             raise ValueError(

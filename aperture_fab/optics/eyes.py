@@ -157,7 +157,8 @@ def check_fields(
             )
     if focus_range_diopters is not None:
         lo, hi = _check_range(names["focus_range_diopters"], focus_range_diopters, 0.0, math.inf,
-                              "")
+                              "Give finite diopters (1000 / focus distance in mm, 0 = "
+                              "infinity), the lower first, e.g. [0, 2].")
         fixed = lo == hi and _inside(nominal_focus_diopters, lo, hi)
         if hi > MAX_ACCOMMODATION_DIOPTERS and not fixed:
             raise ValueError(

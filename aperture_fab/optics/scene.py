@@ -312,7 +312,8 @@ class Eye:
             )
         for pos in self.positions_mm:
             if not (len(pos) == 2 and all(math.isfinite(c) for c in pos)):
-                raise ValueError(f"eye.positions_mm holds {pos!r}; each must be [x_mm, y_mm].")
+                raise ValueError(f"eye.positions_mm holds {pos!r}; allowed: pairs of finite "
+                                 "numbers [x_mm, y_mm], e.g. [[0, 0]].")
         if len(self.weights) != len(self.positions_mm):
             raise ValueError(
                 f"eye.weights has {len(self.weights)} values for {len(self.positions_mm)} "
@@ -320,7 +321,8 @@ class Eye:
             )
         if any(not (math.isfinite(w) and w >= 0) for w in self.weights) or sum(self.weights) <= 0:
             raise ValueError(
-                f"eye.weights = {self.weights} must be >= 0 with a positive sum."
+                f"eye.weights = {self.weights} is out of range; allowed: finite values >= 0 "
+                "with a positive sum, one per position, e.g. [1.0]."
             )
         check_pair("eye.eyebox_mm", self.eyebox_mm, float)
         for name in ("pupil_range_mm", "focus_range_diopters"):
