@@ -16,7 +16,7 @@ __all__ = ["EXIT_CODES_HELP", "main"]
 #: Exit statuses: distinct, so that scripts can tell a bad input from a refused part.
 EXIT_OK = 0
 EXIT_FAILED = 1  # the tool judged and refused: the process cannot make the plate, or it diverged
-EXIT_USAGE = 2  # argparse's own status for a bad command line
+EXIT_USAGE = 2  # argparse's own status for a bad command line; also a missing package
 EXIT_BAD_INPUT = 3
 EXIT_CANNOT_WRITE = 4
 # The part's files and its report are written either way (the user needs the report to see why);
@@ -31,7 +31,8 @@ exit status:
        without --strict
   {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
        anyway), or the optimization diverged; for `sweep`, some points failed
-  {EXIT_USAGE}    usage error: an unknown command or flag, or a flag's value of the wrong type
+  {EXIT_USAGE}    usage error: an unknown command or flag, a flag's value of the wrong type, or a
+       package the command needs is not installed (e.g. the step extra for STEP)
   {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
   {EXIT_CANNOT_WRITE}    a file could not be written or read (no permission, disk full, read-only)
   {EXIT_REPORT_FAIL}    `design`, `validate`: the part and its report were written, but the report
@@ -70,6 +71,8 @@ TEMP_NAME = re.compile(r"\.([^/\\]+)\.[0-9a-f]{12}\.tmp$")
 
 #: Warnings raised from this package's files are the tool's own (printed as one line).
 PACKAGE_DIR = str(Path(__file__).resolve().parent)
+#: The package's import name: an ImportError inside it is a bug, not a missing package.
+PACKAGE_NAME = "aperture_fab"
 
 #: What the report's overall verdict says of the part, in the one-line result.
 VERDICT_WORDS = {
@@ -233,13 +236,16 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def _load_config(args: argparse.Namespace) -> Any:
     from aperture_fab.config.config import parse_toml, resolve
+    from aperture_fab.io.files import read_text
 
     file_dict = None
     if args.config is not None:
         try:
-            text = args.config.read_text()
+            text = read_text(args.config, "--config", "give a TOML config file saved as UTF-8 "
+                             "text, e.g. a design's design.toml.")
         except OSError as err:
-            raise ValueError(f"--config {args.config}: cannot read it ({err.strerror}).") from err
+            raise ValueError(f"--config {args.config}: cannot read it ({err.strerror}); give "
+                             "the path of a TOML config file.") from err
         file_dict = parse_toml(text, str(args.config))
     return resolve(args.preset, file_dict, _overrides(args),
                    file_source=None if args.config is None else str(args.config))
@@ -444,7 +450,7 @@ def _refuse_unmakeable_export(args: argparse.Namespace, config: Any, fabrication
 def _cmd_export(args: argparse.Namespace) -> int:
     from aperture_fab.config.config import parse_toml, resolve
     from aperture_fab.fabrication.part import make_part
-    from aperture_fab.io.files import output_folder, write_atomic
+    from aperture_fab.io.files import output_folder, read_text, write_atomic
     from aperture_fab.io.formats import PART_FORMATS, part_files
     from aperture_fab.io.manifest import refuse_overwrite
     from aperture_fab.pipeline.design_job import write_part
@@ -454,7 +460,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     named = _part_out(args.out, tuple(s for f in PART_FORMATS.values() for s in f.suffixes))
     open_fraction = read_design(args.design).open_fraction  # checked: a whole file, 0..1
     try:
-        text = config_path.read_text()
+        text = read_text(config_path, "the design's config", "give the design's design.toml "
+                         "with --config.")
     except OSError as err:
         raise ValueError(f"{config_path}: cannot read the design's config ({err.strerror}); give "
                          "it with --config.") from err
@@ -1010,6 +1017,39 @@ def _os_error_message(err: OSError, args: argparse.Namespace) -> str:
     return f"cannot write or read {what}: {why}; {fix}."
 
 
+def _refuse_empty_arguments(parser: argparse.ArgumentParser, argv: Sequence[str]) -> None:
+    """A usage error for an empty argument ("" or --flag=): no value of any flag is empty, and
+    an empty path would be read as the current folder (--out "$OUT" with OUT unset would write
+    the part there)."""
+    for n, arg in enumerate(argv):
+        if arg.startswith("--") and arg.endswith("="):
+            what = f"{arg.removesuffix('=')} is given an empty value"
+        elif arg == "":
+            before = argv[n - 1] if n else ""
+            what = (f"{before} is given an empty value" if before.startswith("-")
+                    else f"argument {n + 1} is empty")
+        else:
+            continue
+        parser.error(f"{what}; give a value (a file or folder name, a number or a choice; an "
+                     "unset shell variable gives an empty one).")
+
+
+def _missing_package(err: ImportError) -> bool:
+    """Whether an ImportError says that a package is not installed (an optional extra such as
+    the STEP writer's OCP, or a dependency), not that the tool's own code is broken."""
+    return not (err.name or "").startswith(f"{PACKAGE_NAME}.")
+
+
+def _missing_package_message(err: ImportError) -> str:
+    """One line for a package that is not installed: the tool's own message, which names the
+    package and its install line, or Python's, completed with the fix."""
+    if err.name is None:  # raised by the tool, e.g. "STEP export needs OCCT's Python bindings"
+        return str(err)
+    return (f"this command needs the Python package {err.name!r}, which is not installed "
+            f"({err}); install it, or reinstall aperture-fab with its extras "
+            "(./dev setup installs them all).")
+
+
 def _show_warning(output: Output, default: Any) -> Any:
     """A warnings.showwarning that prints the tool's own warnings as one line each (not with -q)
     and leaves every other library's warning to `default`."""
@@ -1029,6 +1069,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import warnings
 
     parser = build_parser()
+    _refuse_empty_arguments(parser, sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)  # a usage error exits with EXIT_USAGE (argparse's 2)
     if getattr(args, "strict", False) and getattr(args, "no_validate", False):
         # --strict judges the report, which --no-validate does not write: one flag is a mistake.
@@ -1050,6 +1091,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                            "whole (each is written completely or not at all). Run the command "
                            "again to finish it.")
         return EXIT_INTERRUPTED
+    except ImportError as err:
+        if not _missing_package(err):
+            raise  # the tool's own code is broken: its traceback is the report
+        output.traceback()
+        output.error(_missing_package_message(err))
+        return EXIT_USAGE
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
         output.traceback()
         code = _exit_code(err)

@@ -18,7 +18,7 @@ import numpy as np
 from aperture_fab.io.formats import PART_SUFFIXES
 from aperture_fab.io.images import TargetOptions, decode_image, fit_target
 
-__all__ = ["load_targets", "output_folder", "write_atomic"]
+__all__ = ["load_targets", "output_folder", "read_text", "write_atomic"]
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:
@@ -38,9 +38,38 @@ def write_atomic(path: Path, data: bytes | str) -> None:
         raise
 
 
+#: How text files (configs, hole tables) are read: UTF-8, as TOML requires, with a byte-order
+#: mark (as some Windows editors and spreadsheets save) dropped.
+TEXT_ENCODING = "utf-8-sig"
+
+
+def read_text(path: Path, what: str, fix: str) -> str:
+    """The text of `path`; ValueError naming `what` (e.g. "--config"), the file and `fix` when
+    it is not UTF-8 text. OSError (a missing file, no permission) is left to the caller."""
+    try:
+        return path.read_text(encoding=TEXT_ENCODING)
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{what} {path} is not UTF-8 text (byte {err.object[err.start]:#04x} at "
+                         f"offset {err.start} cannot be decoded); {fix}") from err
+
+
+def _check_text_path(folder: Path) -> None:
+    """Refuse a folder whose path is not valid UTF-8 (bytes a file system allows but text does
+    not hold): the outputs record their folder as text (manifest.json, the assembly sheet)."""
+    absolute = os.path.abspath(folder)
+    try:
+        absolute.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(absolute).decode("utf-8", "backslashreplace")
+        raise ValueError(f"the output folder {shown} has a name that is not valid UTF-8 text; "
+                         "the outputs record their folder as text. Rename it, or choose "
+                         "another --out.") from None
+
+
 def output_folder(out: Path) -> Path:
     """The folder for all outputs: `out` itself, or its parent when `out` names a part file."""
     folder = out.parent if out.suffix.lower() in PART_SUFFIXES else out
+    _check_text_path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -86,7 +115,8 @@ def _read_regular(path: Path) -> bytes:
     except FileNotFoundError:
         raise ValueError(f"target image {path} does not exist; check the path.") from None
     except OSError as err:
-        raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
+        raise ValueError(f"cannot read target image {path}: {err.strerror}; check that the "
+                         "path leads to an image file you may read.") from err
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
@@ -94,7 +124,8 @@ def _read_regular(path: Path) -> bytes:
         with os.fdopen(fd, "rb", closefd=False) as f:
             return f.read()
     except OSError as err:
-        raise ValueError(f"cannot read target image {path}: {err.strerror}.") from err
+        raise ValueError(f"cannot read target image {path}: {err.strerror}; check that the "
+                         "path leads to an image file you may read.") from err
     finally:
         os.close(fd)
 

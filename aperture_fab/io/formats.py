@@ -125,7 +125,8 @@ def read_stl(data: bytes) -> PlateMesh:
         # A binary STL's header may also start with "solid"; the size decides.
         corners = _ascii_stl_corners(data)
     elif count < 0:
-        raise ValueError(f"STL data has {len(data)} bytes; a binary STL has at least 84.")
+        raise ValueError(f"STL data has {len(data)} bytes; a binary STL has at least 84. "
+                         "Export the mesh again as STL.")
     elif len(data) != expected:
         raise ValueError(
             f"STL data has {len(data)} bytes but its header promises {count} facets "
@@ -136,7 +137,8 @@ def read_stl(data: bytes) -> PlateMesh:
                                 offset=STL_HEADER_BYTES + 4)
         corners = records["vertices"].reshape(-1, 3)
     if not np.all(np.isfinite(corners)):
-        raise ValueError("STL data has non-finite vertex coordinates.")
+        raise ValueError("STL data has non-finite vertex coordinates (NaN or infinite); "
+                         "allowed: finite millimetres. Export the mesh again as STL.")
     # Adding 0 turns -0.0 into 0.0, so equal numbers have equal bits.
     bits = (corners + np.float32(0)).view(np.uint32)
     order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))
@@ -306,12 +308,12 @@ def read_holes_csv(
             and not r[0].lstrip().startswith(HOLES_CSV_COMMENT)]
     if not rows:
         raise ValueError(f"{source} is empty; a hole table starts with the header "
-                         f"{','.join(HOLES_CSV_COLUMNS)}.")
+                         f"{','.join(HOLES_CSV_COLUMNS)}. Give the holes.csv a design wrote.")
     header = [name.strip().lower() for name in rows[0]]
     if sorted(header) != sorted(HOLES_CSV_COLUMNS):
         raise ValueError(f"{source}: the header is {','.join(rows[0])!r}; a hole table has the "
                          f"columns {','.join(HOLES_CSV_COLUMNS)} (any order), as holes_csv "
-                         "writes them.")
+                         "writes them. Give the holes.csv a design wrote, its header kept.")
     index = {name: header.index(name) for name in HOLES_CSV_COLUMNS}
     nx, ny = plate.cells
     seen: dict[tuple[int, int], int] = {}
@@ -320,7 +322,8 @@ def read_holes_csv(
         where = f"{source} line {number}"
         if len(fields) != len(HOLES_CSV_COLUMNS):
             raise ValueError(f"{where} has {len(fields)} fields; every line needs "
-                             f"{len(HOLES_CSV_COLUMNS)} ({','.join(HOLES_CSV_COLUMNS)}).")
+                             f"{len(HOLES_CSV_COLUMNS)} ({','.join(HOLES_CSV_COLUMNS)}). Fix "
+                             "that line.")
         row = _csv_index(fields[index["row"]], "row", ny, where)
         col = _csv_index(fields[index["col"]], "col", nx, where)
         x, y, radius, ax, ay = (_csv_number(fields[index[name]], name, where)

@@ -14,6 +14,7 @@ pixels are composited on black (warned) or white, or refused; an animation gives
 from __future__ import annotations
 
 import io
+import re
 import struct
 import warnings
 import zlib
@@ -88,6 +89,14 @@ MIN_TARGET_PIXELS = 8
 #: A target whose aspect ratio differs from the display's by more than this share is stretched
 #: visibly (3 %: a circle becomes an ellipse one can see), so the user is warned.
 ASPECT_TOLERANCE = 0.03
+
+
+#: Pillow names the in-memory file it could not identify ("<_io.BytesIO object at 0x...>"):
+#: noise in a message about the user's file, which is named instead.
+PILLOW_BUFFER_REPR = re.compile(r"\s*<_io\.BytesIO object at 0x[0-9a-fA-F]+>")
+#: Pillow's own warnings while it opens a file (e.g. "Truncated File Read" from a TIFF): the file
+#: is refused with one line naming it, or read; a second, raw line would only confuse.
+PILLOW_MODULES = r"PIL\."
 
 
 class TargetWarning(UserWarning):
@@ -189,7 +198,8 @@ def _unreadable_message(name: str, data: bytes, error: Exception) -> str:
                 if width == 0 or height == 0:
                     return (f"{name}: the image has zero size ({width} x {height} pixels). "
                             f"{REEXPORT}")
-            return (f"{name}: looks like a {kind} file but cannot be read ({error}); it is "
+            reason = PILLOW_BUFFER_REPR.sub("", str(error))
+            return (f"{name}: looks like a {kind} file but cannot be read ({reason}); it is "
                     f"probably truncated or corrupt. {REEXPORT}")
     return (f"{name}: is not an image file that can be read ({len(data)} bytes, starting "
             f"{data[:8]!r}). Give a PNG or JPEG image, or re-export it as PNG.")
@@ -342,6 +352,7 @@ def decode_image(data: bytes, name: str, max_pixels: int = MAX_IMAGE_PIXELS, *,
         # Pillow's own bomb warning is replaced by the max_pixels check below; its global
         # Image.MAX_IMAGE_PIXELS is left as it is (it still refuses images over twice its limit).
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        warnings.filterwarnings("ignore", module=PILLOW_MODULES)
         try:
             opened = Image.open(io.BytesIO(data))
         except Image.DecompressionBombError as error:
@@ -562,14 +573,17 @@ def prepare_targets(images: list[np.ndarray], view_pixels: tuple[int, int],
     images: (C, H, W) linear light. C is 1 when every target is grey, else 3; `channels` fixes
     it when a saved design's display already has a channel count.
     """
-    for n, image in enumerate(images):
-        check_target(image, repr(names[n]) if names is not None else f"number {n + 1}",
-                     display_pixels)
+    labels = [repr(names[n]) if names is not None else f"number {n + 1}"
+              for n in range(len(images))]
+    for label, image in zip(labels, images, strict=True):
+        check_target(image, label, display_pixels)
     grey = all(is_grey(im) for im in images)
     want = channels if channels is not None else (1 if grey else 3)
     if want == 1 and not grey:
-        raise ValueError("the design's display is grey (one channel) but a target has colour; "
-                         "give grey targets, or design again with colour targets.")
+        colour = next(label for label, im in zip(labels, images, strict=True) if not is_grey(im))
+        raise ValueError(f"target image {colour} has colour, but the design's display is grey "
+                         "(one channel); give a grey target (convert it to greyscale), or "
+                         "design again with colour targets.")
     prepared = [np.ascontiguousarray(im[:1] if want == 1 else
                                      np.broadcast_to(im, (3, *im.shape[1:]))) for im in images]
     return (np.stack([resample(im, view_pixels) for im in prepared]),

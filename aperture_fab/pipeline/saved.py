@@ -24,6 +24,7 @@ from aperture_fab.fabrication.part import FabricationSettings, Part, build_part,
 from aperture_fab.fabrication.process import Process
 from aperture_fab.fabrication.quantize import quantize
 from aperture_fab.fabrication.rules import layout_violations
+from aperture_fab.io.files import read_text
 from aperture_fab.io.manifest import check_folder
 from aperture_fab.optics.scene import Scene
 
@@ -44,6 +45,12 @@ __all__ = [
 ]
 
 PartKind = Literal["design", "holes", "mesh"]
+
+#: Largest array a design.npz may hold, in bytes, as its header declares it: far above any
+#: design (a 4K display's content for five colour targets is 1.2 GB), and checked before
+#: numpy allocates it, so that a damaged or hostile file whose header claims terabytes (or a
+#: zip bomb) is refused at once rather than exhausting memory.
+MAX_DESIGN_ARRAY_BYTES = 4 << 30
 PART_KINDS: dict[str, PartKind] = {".npz": "design", ".csv": "holes", ".stl": "mesh"}
 DESIGN_NAME = "design.npz"
 CONFIG_NAME = "design.toml"
@@ -95,7 +102,7 @@ def part_kind(path: Path) -> PartKind:
 def read_config(path: Path) -> Config:
     """The resolved config of a design.toml (its own preset key, no flags)."""
     try:
-        text = path.read_text()
+        text = read_text(path, "config", "give the design's design.toml with --config.")
     except FileNotFoundError:
         raise ValueError(f"config {path} does not exist; give the design's design.toml with "
                          "--config.") from None
@@ -106,7 +113,12 @@ def read_config(path: Path) -> Config:
 
 def read_design(path: Path) -> SavedDesign:
     """Read a design.npz; ValueError naming the file when it is not one."""
+    if path.is_file() and not zipfile.is_zipfile(path):
+        raise ValueError(f"{path}: not a design.npz written by `aperture-fab design`, or "
+                         "truncated (it is not a whole .npz archive of arrays); give the design "
+                         "folder's design.npz, or design again.")
     try:
+        _check_array_sizes(path)
         with np.load(path) as data:
             open_fraction = np.asarray(data["open_fraction"], dtype=np.float64)
             displays = np.asarray(data["displays"], dtype=np.float64)
@@ -120,7 +132,10 @@ def read_design(path: Path) -> SavedDesign:
             if "continuous_open_fraction" in data.files:
                 continuous = (np.asarray(data["continuous_open_fraction"], dtype=np.float64),
                               np.asarray(data["continuous_displays"], dtype=np.float64))
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+    except OversizedArrayError:
+        raise  # its own message: which array, how large
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error,
+            MemoryError) as err:
         # A truncated file (an interrupted copy) fails in zipfile or zlib, not with OSError.
         raise ValueError(f"{path}: not a design.npz written by `aperture-fab design`, or "
                          f"truncated ({type(err).__name__}: {err}); give the design folder's "
@@ -140,6 +155,29 @@ def read_design(path: Path) -> SavedDesign:
                          f"{continuous[1].shape}, unlike the design's {open_fraction.shape} and "
                          f"{displays.shape}; design again.")
     return SavedDesign(path, open_fraction, displays, built, history, names, continuous)
+
+
+class OversizedArrayError(ValueError):
+    """A design.npz declares an array larger than MAX_DESIGN_ARRAY_BYTES."""
+
+
+def _check_array_sizes(path: Path) -> None:
+    """Refuse (ValueError) a design.npz an array of which its header declares larger than
+    MAX_DESIGN_ARRAY_BYTES, reading only the headers."""
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            with archive.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(member)
+            size = math.prod(shape) * dtype.itemsize
+            if size > MAX_DESIGN_ARRAY_BYTES:
+                raise OversizedArrayError(
+                    f"{path}: its array {info.filename} declares shape {shape} "
+                    f"({size / 2**30:.3g} GiB), more than any design holds (at most "
+                    f"{MAX_DESIGN_ARRAY_BYTES / 2**30:g} GiB); the file is damaged or not a "
+                    "design.npz. Give the design folder's design.npz, or design again.")
 
 
 def check_design(design: SavedDesign, config: Config, config_path: Path) -> None:
@@ -251,8 +289,9 @@ def load_part(path: Path, kind: PartKind, config: Config, fabrication: Fabricati
     if kind == "holes":
         blank = _blank_layout(scene, process)
         try:
-            text = path.read_text()
-        except (OSError, UnicodeDecodeError) as err:
+            text = read_text(path, "hole table", "save it as UTF-8 text (CSV), as holes_csv "
+                             "writes it.")
+        except OSError as err:
             raise ValueError(f"{path}: cannot read the hole table ({err}).") from err
         layout = read_holes_csv(text, scene.plate, outline_mm=blank.outline_mm,
                                 converge_mm=blank.converge_mm, source=str(path))

@@ -330,9 +330,12 @@ def _base_file(source: Path, name: Any) -> Mapping[str, Any] | None:
         return None
     if not isinstance(name, str):
         raise _fail(source, "[sweep] config", f"{name!r} must be a path in quotes.")
+    from aperture_fab.io.files import read_text
+
     path = (source.parent / name).resolve()
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(read_text(path, "[sweep] config", "give a TOML config saved as "
+                                       "UTF-8 text."))
     except OSError as err:
         raise _fail(source, "[sweep] config", f"cannot read {path} ({err.strerror}); the path "
                     "is relative to the sweep file's folder.") from err
@@ -371,10 +374,14 @@ def _space(source: Path, table: Mapping[str, Any]) -> tuple[Dimension, ...]:
 
 def load_spec(path: Path) -> SweepSpec:
     """Read and check a sweep file (the shape only; `check_points` checks the values)."""
+    from aperture_fab.io.files import read_text
+
     try:
-        text = path.read_text()
+        text = read_text(path, "sweep file", "save it as UTF-8 text (TOML), e.g. from "
+                         "examples/sweep.toml.")
     except OSError as err:
-        raise ValueError(f"sweep file {path}: cannot read it ({err.strerror}).") from err
+        raise ValueError(f"sweep file {path}: cannot read it ({err.strerror}); check the "
+                         "path (examples/sweep.toml is one).") from err
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
