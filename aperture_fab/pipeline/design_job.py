@@ -149,6 +149,7 @@ def design(
                 optics = made_optics(scene, fabrication.process)
         bounds = design_bounds(scene, fabrication.process)
     check_light_floor(scene, settings, bounds, fabrication)
+    check_eye_sees_display(scene)
     targets, shown = prepare_targets(list(images), scene.eye.view_pixels, scene.display.pixels,
                                      names=names)
     timings = {}
@@ -179,6 +180,32 @@ def design(
                                optics=optics, progress=progress)
         timings["fit_display_s"] = time.perf_counter() - start
     return DesignResult(config, result, names, targets, views, metrics, part, built, timings)
+
+
+#: Pupil points of the quick look check_eye_sees_display takes.
+SEEN_PUPIL_SAMPLES = 8
+
+
+def check_eye_sees_display(scene: Scene) -> None:
+    """Refuse, before the work, an eye position (eye.positions_mm) from which no light of the
+    display reaches the pupil even with no plate: every view there is black, so the optimizer
+    has nothing to fit and the design would be empty (render refuses such an --eye too)."""
+    white = torch.ones((1, scene.display.pixels[1], scene.display.pixels[0]),
+                       dtype=torch.float64)
+    for position, (x, y) in enumerate(scene.eye.positions_mm):
+        with torch.no_grad():
+            # A few pupil points say at once that light arrives; the full quadrature
+            # (seconds for a large scene) confirms only a black answer.
+            seen = float(render_open(scene, white, position, SEEN_PUPIL_SAMPLES, 1).mean())
+            if not seen > 0:
+                seen = float(render_open(scene, white, position).mean())
+        if not seen > 0:
+            half_width, half_height = scene.display.width_mm / 2, scene.display.height_mm / 2
+            raise ValueError(
+                f"eye.positions_mm holds ({x:g}, {y:g}) mm, from where the eye sees no light "
+                "from the display, even with no plate (it is outside the cone of light the "
+                f"display sends; the display spans +-{half_width:g} x +-{half_height:g} mm "
+                "around the axis). Give positions near the axis, e.g. positions_mm = [[0, 0]].")
 
 
 def check_light_floor(scene: Scene, settings: OptimizerSettings,

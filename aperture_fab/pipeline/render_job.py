@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -17,6 +18,7 @@ import torch
 from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.io.files import load_targets, write_atomic
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
+from aperture_fab.io.manifest import refuse_overwrite
 from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer, render_open
@@ -31,7 +33,7 @@ from aperture_fab.pipeline.saved import (
     part_kind,
     read_config,
 )
-from aperture_fab.validation.validate import layout_fractions
+from aperture_fab.validation.validate import MAX_COUNTS, layout_fractions
 
 __all__ = ["DisplayFrame", "RenderedView", "run_display", "run_render"]
 
@@ -39,6 +41,9 @@ __all__ = ["DisplayFrame", "RenderedView", "run_display", "run_render"]
 RENDER_PERCENTILE = 99.5
 #: The suffix of the images render and display write.
 PNG_SUFFIX = ".png"
+#: The fewest --mesh-samples the re-trace takes: retrace.REPLICATES estimates of 2 rays each
+#: (written out: retrace loads the ray tracer, which render needs only with --mesh).
+MESH_LEAST_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -60,8 +65,10 @@ class RenderedView:
     path: Path
 
 
-def _png_out(path: Path) -> Path:
-    """An --out for a PNG, checked before any work: a file name ending in .png."""
+def _png_out(path: Path, inputs: Sequence[Path | None] = ()) -> Path:
+    """An --out for a PNG, checked before any work: a file name ending in .png that is none of
+    `inputs` (the target images read) and no file of a design set (its manifest.json lists
+    it): writing over either would destroy it."""
     if path.is_dir():
         raise ValueError(f"--out {path} is a folder; give a PNG file name in it, e.g. --out "
                          f"{path / 'view.png'}.")
@@ -69,6 +76,13 @@ def _png_out(path: Path) -> Path:
         raise ValueError(f"--out {path}: {path.suffix or 'no suffix'} is not allowed; the image "
                          f"is written as a PNG, so give a name ending in {PNG_SUFFIX}, e.g. "
                          f"--out {path.with_suffix(PNG_SUFFIX)}.")
+    for given in inputs:
+        if given is not None and path.exists() and given.exists() and path.samefile(given):
+            raise ValueError(f"--out {path} is the target image {given} this command reads; "
+                             "writing the PNG over it would destroy it. Give another --out, "
+                             f"e.g. --out {path.with_name(f'view_{path.name}')}.")
+    if path.parent.is_dir():
+        refuse_overwrite(path.parent, [path.name])
     return path
 
 
@@ -115,7 +129,13 @@ def run_render(
     beside the part.
     """
     kind = part_kind(part)
-    path = _png_out(out if out is not None else part.parent / f"view_{part.stem}.png")
+    path = _png_out(out if out is not None else part.parent / f"view_{part.stem}.png", [target])
+    if mesh and mesh_samples is not None and not (
+            isinstance(mesh_samples, int) and MESH_LEAST_SAMPLES <= mesh_samples
+            <= MAX_COUNTS["mesh_samples"]):
+        raise ValueError(f"--mesh-samples {mesh_samples} is out of range; allowed: a whole "
+                         f"number from {MESH_LEAST_SAMPLES} to {MAX_COUNTS['mesh_samples']} "
+                         "(rays per view pixel and hole; the default is 12).")
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
     fabrication = fabrication_settings(config.extra, {"process": process})
@@ -266,7 +286,7 @@ def run_display(
     from aperture_fab.optimize.tracking import DEFAULT_ITERATIONS, tracked_views
 
     kind = part_kind(part)
-    path = _png_out(out)
+    path = _png_out(out, [target])
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
     scene = config.scene

@@ -81,6 +81,18 @@ TOLERANCE_EYE_STATES = 8
 #: Largest plate-tilt sigma: beyond a few degrees the plate is not seated (an assembly fault,
 #: not a tolerance) and the small-tilt model above no longer holds.
 MAX_TILT_SIGMA_DEG = 5.0
+#: An example of each number of [validation], for messages.
+VALIDATION_EXAMPLES = {"gap_sigma_mm": "0.1", "eye_sigma_mm": "1.0", "tilt_sigma_deg": "0.5",
+                       "threshold_db": "20.0"}
+#: The most of each count a validation takes: beyond these a run takes hours for no visible
+#: gain, so a larger value is a typo (an extra zero), refused before any work rather than
+#: left to run as if hung.
+MAX_COUNTS: dict[str, int] = {
+    "tolerance_samples": 10_000,
+    "mesh_samples": 4096,  # rays per (view pixel, hole) pair; the default budget gives 12 to 256
+    "eye_states": 4096,
+    "made_copies": 1000,
+}
 
 
 @dataclass(frozen=True)
@@ -123,8 +135,27 @@ class ValidationSettings:
             value = getattr(self, name)
             if name == "mesh_samples" and value is None:
                 continue
-            if not (isinstance(value, int) and value >= 0):
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
                 raise ValueError(f"validation.{name} = {value!r} must be a whole number >= 0.")
+            most = MAX_COUNTS.get(name)
+            if most is not None and value > most:
+                raise ValueError(f"validation.{name} = {value} is out of range; allowed: 0 to "
+                                 f"{most} (more takes hours for no visible gain). Give a "
+                                 "smaller number.")
+        for name in ("gap_sigma_mm", "eye_sigma_mm", "tilt_sigma_deg", "threshold_db"):
+            value = getattr(self, name)
+            if name == "threshold_db" and value is None:
+                continue
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool)):
+                raise TypeError(f"validation.{name} = {value!r} has the wrong type: expected a "
+                                f"number, e.g. {name} = {VALIDATION_EXAMPLES[name]}.")
+        if not isinstance(self.diffraction, bool):
+            raise TypeError(f"validation.diffraction = {self.diffraction!r} has the wrong type: "
+                            "expected true or false (without quotes).")
+        if self.threshold_db is not None and not math.isfinite(self.threshold_db):
+            raise ValueError(f"validation.threshold_db = {self.threshold_db!r} must be a finite "
+                             "PSNR in dB, e.g. 20, or left out (the part's own figure minus "
+                             f"{YIELD_MARGIN_DB:g} dB).")
         for name in ("gap_sigma_mm", "eye_sigma_mm"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
