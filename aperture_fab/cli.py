@@ -31,8 +31,8 @@ exit status:
        without --strict
   {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
        anyway), or the optimization diverged; for `sweep`, some points failed
-  {EXIT_USAGE}    usage error: an unknown command or flag, a flag's value of the wrong type, or a
-       package the command needs is not installed (e.g. the step extra for STEP)
+  {EXIT_USAGE}    usage error: an unknown command or flag, a flag's value of the wrong type or
+       empty, or a package the command needs is not installed (e.g. the step extra for STEP)
   {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
   {EXIT_CANNOT_WRITE}    a file could not be written or read (no permission, disk full, read-only)
   {EXIT_REPORT_FAIL}    `design`, `validate`: the part and its report were written, but the report
