@@ -156,7 +156,23 @@ def test_to_toml_layout(name: str) -> None:
     assert 'note = "a \\"b\\"\\n"\n' in text
     eye = config.scene.eye
     assert f"view_pixels = [{eye.view_pixels[0]}, {eye.view_pixels[1]}]\n" in text
-    assert f"fov_deg = [{eye.fov_deg[0]!r}, {eye.fov_deg[1]!r}]\n" in text
+    if config.fov_from_display:
+        fov_x, fov_y = eye.fov_deg
+        assert f'fov_deg = "display" # {fov_x:.2f} x {fov_y:.2f} deg here\n' in text
+    else:
+        assert f"fov_deg = [{eye.fov_deg[0]!r}, {eye.fov_deg[1]!r}]\n" in text
+
+
+@pytest.mark.parametrize("fov", ["display", [40.0, 30.0]])
+def test_a_written_config_derives_the_field_again_unless_it_was_set(fov: Any) -> None:
+    # design.toml re-run with another gap: a derived field follows the geometry, a set one stays.
+    written = to_toml(resolve("near-eye", overrides={"eye.fov_deg": fov}))
+    rerun = resolve(file_dict=parse_toml(written, "design.toml"), overrides={"plate.gap_mm": 6.0})
+    fresh = resolve("near-eye", overrides={"eye.fov_deg": fov, "plate.gap_mm": 6.0})
+    assert rerun.scene.eye.fov_deg == fresh.scene.eye.fov_deg
+    assert rerun.fov_from_display == (fov == "display")
+    if fov == "display":
+        assert rerun.scene.eye.fov_deg[0] > resolve("near-eye").scene.eye.fov_deg[0]
 
 
 # Pitches that fit a 20 mm display with at most 400 cells per axis.
@@ -367,10 +383,11 @@ def test_near_eye_nominal_differs_from_near_eye_only_in_the_eye_distribution() -
     distribution_keys = {"eyebox_mm", "pupil_range_mm"}
     for section in SECTION_KEYS:
         for key in SECTION_KEYS[section]:
-            if key in distribution_keys or key in ("eye_states", "fov_deg"):
+            if key in distribution_keys or key == "eye_states":
                 assert near[section][key] != nominal[section][key], key
-            else:
+            else:  # fov_deg = "display" in both, derived for each eyebox
                 assert near[section][key] == nominal[section][key], key
+    assert resolve("near-eye").scene.eye.fov_deg != resolve("near-eye-nominal").scene.eye.fov_deg
     assert "near-eye-nominal" in PRESET_DESCRIPTIONS
     assert "the nominal eye only" in preset_summary("near-eye-nominal")
     assert "eyebox 4 x 4 mm ellipse, pupil 3-6 mm" in preset_summary("near-eye")

@@ -137,12 +137,16 @@ class Config:
     optimizer: optimizer settings.
     extra: other top-level tables (e.g. "process", "validation"), read-only, kept for the
         stages that own them; nested tables are read-only mappings and arrays are tuples.
+    fov_from_display: whether scene.eye.fov_deg was derived from the geometry
+        (`fov_deg = "display"`) rather than set; a written config then says "display", so a
+        rerun with another gap or eyebox derives the field again instead of freezing this one.
     """
 
     preset: str
     scene: Scene
     optimizer: OptimizerSettings
     extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    fov_from_display: bool = False
 
 
 # ---------------------------------------------------------------------------------------------
@@ -457,7 +461,8 @@ def resolve(
             and layers.sources["eye.weights"][0] < layers.sources["eye.positions_mm"][0]):
         eye_args["weights"] = (1.0,) * n_positions
     _pin_ranges(eye_args, layers)
-    if eye_args["fov_deg"] == DISPLAY_FOV:
+    fov_from_display = eye_args["fov_deg"] == DISPLAY_FOV
+    if fov_from_display:
         distance_mm = eye_args["eye_relief_mm"] + plate.thickness_mm + plate.gap_mm
         # Check the eye's own values first (their messages are the clearer ones), then take
         # the field the display covers from every pupil position of the eyebox.
@@ -481,7 +486,8 @@ def resolve(
             < layers.sources["optimizer.tracking"][0]):
         optimizer_args["min_efficiency"] = 0.0
     optimizer = _build(OptimizerSettings, optimizer_args, layers)
-    return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra))
+    return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra),
+                  fov_from_display=fov_from_display)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -494,7 +500,8 @@ def _range_value(bounds: tuple[float, float] | None) -> Any:
 
 def to_dict(config: Config) -> dict[str, Any]:
     """The fully resolved config as plain dicts and lists, in the TOML file's shape: every value
-    explicit, so a written config re-runs the same even if a default changes."""
+    explicit, so a written config re-runs the same even if a default changes; only a field of
+    view derived from the geometry stays "display", so it follows a changed gap or eyebox."""
     display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
     opt = config.optimizer
     sections: dict[str, dict[str, Any]] = {
@@ -506,7 +513,8 @@ def to_dict(config: Config) -> dict[str, Any]:
                   "hole_axis": plate.hole_axis},
         "eye": {"pupil_mm": eye.pupil_mm, "eye_relief_mm": eye.eye_relief_mm,
                 "focus_mm": INFINITY if eye.focus_mm is None else eye.focus_mm,
-                "fov_deg": list(eye.fov_deg), "view_pixels": list(eye.view_pixels),
+                "fov_deg": DISPLAY_FOV if config.fov_from_display else list(eye.fov_deg),
+                "view_pixels": list(eye.view_pixels),
                 "positions_mm": [list(p) for p in eye.positions_mm],
                 "weights": list(eye.weights), "eyebox_mm": list(eye.eyebox_mm),
                 "eyebox_shape": eye.eyebox_shape,
@@ -520,7 +528,7 @@ def to_dict(config: Config) -> dict[str, Any]:
 
 #: The first line of a written config.
 TOML_HEADER = ("# aperture-fab configuration, fully resolved: every value explicit (fov_deg in "
-               "degrees).")
+               'degrees, or "display": derived from the geometry, its value in the comment).')
 
 
 def to_toml(config: Config) -> str:
@@ -530,4 +538,8 @@ def to_toml(config: Config) -> str:
     # TOML requires. The checkpoint's config digest (pipeline.design_job.input_digests) hashes
     # this text: tests/test_config.py holds the layout, so a tomlkit upgrade that changed it
     # is seen before it makes checkpoints refuse --resume.
-    return f"{TOML_HEADER}\n{tomlkit.dumps(to_dict(config))}"
+    document = tomlkit.item(to_dict(config))
+    if config.fov_from_display:
+        fov_x, fov_y = config.scene.eye.fov_deg
+        document["eye"]["fov_deg"].comment(f"{fov_x:.2f} x {fov_y:.2f} deg here")
+    return f"{TOML_HEADER}\n{tomlkit.dumps(document)}"
