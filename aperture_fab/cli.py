@@ -23,6 +23,7 @@ EXIT_CANNOT_WRITE = 4
 # only the status says that the report's overall verdict refuses the part.
 EXIT_REPORT_FAIL = 5  # the report says FAIL: do not make the part as it is
 EXIT_REPORT_WARN = 6  # with --strict only: the report says WARN
+EXIT_NO_CLUSTER = 7  # `sweep`: the Ray cluster at --address could not be reached
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 
 EXIT_CODES_HELP = f"""\
@@ -39,6 +40,8 @@ exit status:
        says FAIL: do not make the part as it is (report.html says why and what to change)
   {EXIT_REPORT_WARN}    `design`, `validate` with --strict: the report says WARN (usable, with
        reservations); without --strict a WARN exits {EXIT_OK}
+  {EXIT_NO_CLUSTER}    `sweep`: the Ray cluster at --address could not be reached within
+       --connect-timeout (the message names the address and the fix)
   {EXIT_INTERRUPTED}  interrupted (Ctrl-C); `design` saves a checkpoint first (--resume goes on)
 
 -q/--quiet prints only errors and the final one-line result, which is also the last line
@@ -54,6 +57,10 @@ JUDGED_FAILURES: tuple[tuple[str, str], ...] = (
     ("aperture_fab.fabrication.process", "UnmakeableError"),
     ("aperture_fab.optimize.optimizer", "DivergedError"),
 )
+
+#: (module, class) of the errors that say a Ray cluster could not be reached (EXIT_NO_CLUSTER):
+#: a connection error, not a file error, though both are OSErrors.
+UNREACHABLE: tuple[tuple[str, str], ...] = (("aperture_fab.sweep.cluster", "ClusterUnreachable"),)
 
 #: What to do about a file system error, by errno.
 OS_ERROR_FIXES: dict[int, str] = {
@@ -995,12 +1002,17 @@ def _add_output_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _exit_code(err: BaseException) -> int:
-    """EXIT_FAILED for a failure the tool judged (JUDGED_FAILURES), EXIT_CANNOT_WRITE for a
-    file system error, else EXIT_BAD_INPUT."""
+    """EXIT_FAILED for a failure the tool judged (JUDGED_FAILURES), EXIT_NO_CLUSTER for a Ray
+    cluster out of reach (UNREACHABLE), EXIT_CANNOT_WRITE for a file system error, else
+    EXIT_BAD_INPUT."""
     for module, name in JUDGED_FAILURES:
         loaded = sys.modules.get(module)  # not imported: the error cannot be one of its classes
         if loaded is not None and isinstance(err, getattr(loaded, name)):
             return EXIT_FAILED
+    for module, name in UNREACHABLE:
+        loaded = sys.modules.get(module)
+        if loaded is not None and isinstance(err, getattr(loaded, name)):
+            return EXIT_NO_CLUSTER
     if isinstance(err, OSError) and not isinstance(err, FileNotFoundError):
         return EXIT_CANNOT_WRITE
     return EXIT_BAD_INPUT
