@@ -26,7 +26,7 @@ from typing import Any
 from aperture_fab.sweep.spec import FIGURES, Point, SweepSpec
 
 __all__ = ["FIGURE_HELP", "figures_from_report", "summary_line", "dominates", "pareto_mask",
-           "table_rows", "write_results"]
+           "table_rows", "write_results", "TableLog", "note"]
 
 #: What each figure means (the docs and the page repeat it).
 FIGURE_HELP: dict[str, str] = {
@@ -58,7 +58,10 @@ FIGURE_HELP: dict[str, str] = {
     "seconds": "wall time of the design job, seconds",
 }
 BASE_COLUMNS = ("id", "status")
-TAIL_COLUMNS = ("error", "report")
+#: attempts: runs of the point (more than 1: its worker or node was lost and it ran again);
+#: note: "lost, retried" and what was lost.
+TAIL_COLUMNS = ("attempts", "note", "error", "report")
+RESULTS_CSV = "results.csv"
 PLOT_INCHES = (6.4, 4.4)
 #: Characters of a failed point's error shown in the page's table.
 ERROR_CHARS = 120
@@ -105,16 +108,30 @@ def _num(value: Any, form: str) -> str:
     return "-" if value is None else format(value, form)
 
 
+def note(record: Mapping[str, Any]) -> str | None:
+    """"lost, retried (...)" for a point that ran again after its worker or node was lost,
+    "lost (...)" for one that was lost every time; None otherwise."""
+    lost = record.get("lost") or []
+    if not lost:
+        return None
+    times = f"{len(lost)} time{'s' if len(lost) > 1 else ''}"
+    state = "lost" if record["status"] == "lost" else "lost, retried"
+    return f"{state} ({times}: {lost[-1]})"
+
+
 def summary_line(record: Mapping[str, Any], label: str) -> str:
     """One progress line for a finished point."""
     head = f"{record['status']:<6} {record['id']}  {label}"
+    if record["status"] == "lost":
+        return f"{head}  LOST: {record['error']}"
     if record["status"] != "ok":
         return f"{head}  FAILED: {record['error']}"
     f = record["figures"]
     light = None if f.get("light_efficiency") is None else 100 * f["light_efficiency"]
     return (f"{head}  eye p10 {_num(f.get('eye_p10_psnr_db'), '.2f')} dB, light "
             f"{_num(light, '.3f')} %, {f.get('hole_count')} holes, "
-            f"{_num(record.get('seconds'), '.1f')} s")
+            f"{_num(record.get('seconds'), '.1f')} s"
+            + (f"  [{note(record)}]" if note(record) else ""))
 
 
 def dominates(a: Sequence[float], b: Sequence[float], maximize: Sequence[bool]) -> bool:
@@ -148,6 +165,8 @@ def table_rows(spec: SweepSpec, points: Sequence[Point],
                                "status": record["status"] if record else "pending"}
         row.update({k: _cell(v) for k, v in point.settings})
         row.update({f: figures.get(f) for f in FIGURES})
+        row["attempts"] = record.get("attempts", 1) if record else None
+        row["note"] = note(record) if record else None
         row["error"] = record.get("error") if record else None
         ok = record is not None and record["status"] == "ok"
         row["report"] = f"points/{point.id}/{'report.html' if ok else 'point.json'}"
@@ -235,7 +254,7 @@ def _html(spec: SweepSpec, rows: list[dict[str, Any]], columns: list[str], svg: 
           front_ids: set[str]) -> str:
     esc = html.escape
     ok = sum(r["status"] == "ok" for r in rows)
-    failed = sum(r["status"] == "failed" for r in rows)
+    failed = sum(r["status"] in ("failed", "lost") for r in rows)
     objectives = ", ".join(str(o) for o in spec.objectives)
     extra = "" if len(spec.objectives) < 3 else (
         f"<p>The plot shows the first two of {len(spec.objectives)} objectives; the front is "
@@ -268,7 +287,7 @@ def _html(spec: SweepSpec, rows: list[dict[str, Any]], columns: list[str], svg: 
 table{{border-collapse:collapse;font-size:0.85em}}td,th{{border:1px solid #ccc;padding:2px 6px}}
 tr.front{{background:#fde8e8}}td.err{{min-width:28em;font-size:0.85em}}svg{{max-width:100%;height:auto}}</style></head><body>
 <h1>Sweep {esc(spec.source.name)}</h1>
-<p>{len(rows)} points ({ok} ok, {failed} failed, {len(rows) - ok - failed} not run);
+<p>{len(rows)} points ({ok} ok, {failed} failed or lost, {len(rows) - ok - failed} not run);
 mode {esc(spec.mode)}; objectives: {esc(objectives)}; {len(front_ids)} point(s) on the Pareto
 front (highlighted). Click a point in the plot or an id in the table for its report.</p>
 {extra}{svg}
@@ -288,9 +307,9 @@ def write_results(out: Path, spec: SweepSpec, points: Sequence[Point],
                                           *TAIL_COLUMNS]
     ranked, front = _front(spec, rows)
     front_rows = [r for r, f in zip(ranked, front, strict=True) if f]
-    paths = {name: out / name for name in ("results.csv", "results.parquet", "pareto.csv",
+    paths = {name: out / name for name in (RESULTS_CSV, "results.parquet", "pareto.csv",
                                            "sweep.html")}
-    write_atomic(paths["results.csv"], _csv(rows, columns))
+    write_atomic(paths[RESULTS_CSV], _csv(rows, columns))
     write_atomic(paths["pareto.csv"], _csv(front_rows, columns))
     if rows:
         write_atomic(paths["results.parquet"], _parquet(rows, columns))
@@ -300,3 +319,46 @@ def write_results(out: Path, spec: SweepSpec, points: Sequence[Point],
     write_atomic(paths["sweep.html"], _html(spec, rows, columns, svg,
                                             {r["id"] for r in front_rows}))
     return paths
+
+
+def columns_of(spec: SweepSpec) -> list[str]:
+    """The table's columns, in order."""
+    return [*BASE_COLUMNS, *spec.swept_keys, *FIGURES, *TAIL_COLUMNS]
+
+
+class TableLog:
+    """results.csv kept current while a sweep runs: `start` writes the points finished before,
+    `append` adds one row as each point finishes (a killed driver loses no finished point),
+    and `refresh` rewrites every table (at most every refresh_s seconds: the page's plot
+    costs a fraction of a second). write_results at the end puts the rows in the sweep's
+    order, with the points not run."""
+
+    def __init__(self, out: Path, spec: SweepSpec, refresh_s: float,
+                 clock: Any = None) -> None:
+        import time
+
+        self.out, self.spec, self.refresh_s = out, spec, refresh_s
+        self.clock = clock or time.monotonic
+        self.columns = columns_of(spec)
+        self.last = self.clock()
+
+    def start(self, points: Sequence[Point], records: Mapping[str, Mapping[str, Any]]) -> None:
+        from aperture_fab.io.files import write_atomic
+
+        rows = table_rows(self.spec, [p for p in points if p.id in records], records)
+        write_atomic(self.out / RESULTS_CSV, _csv(rows, self.columns))
+
+    def append(self, point: Point, record: Mapping[str, Any]) -> None:
+        import os
+
+        text = _csv(table_rows(self.spec, [point], {point.id: record}), self.columns)
+        with open(self.out / RESULTS_CSV, "a", encoding="utf-8") as table:
+            table.write(text.split("\n", 1)[1])  # the row, not the header
+            table.flush()
+            os.fsync(table.fileno())
+
+    def refresh(self, points: Sequence[Point], records: Mapping[str, Mapping[str, Any]],
+                force: bool = False) -> None:
+        if force or self.clock() - self.last >= self.refresh_s:
+            write_results(self.out, self.spec, [p for p in points if p.id in records], records)
+            self.last = self.clock()

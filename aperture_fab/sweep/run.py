@@ -2,28 +2,33 @@
 
 Each point is an independent task with its own folder, out/points/<id>/. Its point.json (the
 settings, the figures or the error, the seconds) is written atomically and last, so its presence
-marks the point finished: a rerun skips ok points (and failed ones unless retry_failed), and an
-interrupted sweep loses at most the points that were running. A failing point is recorded with
-its error and traceback tail and never stops the sweep.
+marks the point finished: a rerun skips ok points (failed ones unless retry_failed, lost ones
+unless retry_lost), and an interrupted or killed sweep loses at most the points that were
+running. results.csv grows by a row as each point finishes.
 
-Search mode asks Optuna's NSGA-II sampler for one generation (`population` points) at a time and
-tells it the results in trial order once the generation is done; a rerun replays the same asks
-from the same seed and tells finished points from their point.json without running them, so it
-continues the search exactly where it stopped.
+Before a point is sent anywhere, the driver runs the checks `aperture-fab design` runs before
+its work (the process's rules, the light floor, that the eye sees the display): a point they
+refuse is recorded as failed at once (`preflight`); --dry-run runs the same checks on every
+point. A failing point is recorded with its error and traceback tail and never stops the sweep;
+a lost one (its worker or node went away) runs again (schedule.Scheduler).
 
-Ray is optional: without it, backend "serial" runs the points one after another in this process.
+Search mode is asynchronous: Optuna's NSGA-II sampler is asked for a point whenever a slot is
+free and told each result as it comes, with no wait for a whole generation. A rerun first tells
+the study every point of this search already finished (in the order they finished), then asks
+for the rest; with one worker (--serial) the search is deterministic for its seed.
+
+SIGTERM stops a sweep like Ctrl-C; once stopping, further Ctrl-C or SIGTERM are ignored until the
+tables of the finished points are written.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
-import shutil
-import socket
-import tempfile
-import time
-import traceback
+import secrets
+import signal
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,8 +36,16 @@ from pathlib import Path
 from typing import Any, Literal
 
 from aperture_fab.io.files import write_atomic
-from aperture_fab.io.manifest import remove_listed
-from aperture_fab.sweep.results import figures_from_report, summary_line
+from aperture_fab.sweep.progress import Progress
+from aperture_fab.sweep.results import TableLog, write_results
+from aperture_fab.sweep.schedule import (
+    DEFAULT_LOST_RETRIES,
+    Executor,
+    RayExecutor,
+    Scheduler,
+    SerialExecutor,
+    lost_record,
+)
 from aperture_fab.sweep.spec import (
     Choice,
     FloatRange,
@@ -42,18 +55,25 @@ from aperture_fab.sweep.spec import (
     grid_points,
     make_point,
 )
+from aperture_fab.sweep.worker import (
+    MARKER_FILE,
+    POINT_FILE,
+    FilesMode,
+    Job,
+    clear_attempt,
+    plain,
+)
 
-__all__ = ["Backend", "RunOptions", "Job", "SweepOutcome", "run_sweep", "run_point",
-           "load_record", "require"]
+__all__ = ["Backend", "RunOptions", "Job", "SweepOutcome", "run_sweep", "load_record",
+           "require", "resolve_point", "preflight", "Preflight", "POINT_FILE", "EXTRA"]
 
 Backend = Literal["ray", "serial"]
-Status = Literal["ok", "failed"]
+Status = Literal["ok", "failed", "lost"]
+STATUSES: tuple[Status, ...] = ("ok", "failed", "lost")
 POINTS_DIR = "points"
-POINT_FILE = "point.json"
-SCHEMA_VERSION = 1
-#: Lines of a failed point's traceback kept in point.json.
-TRACEBACK_LINES = 25
 EXTRA = "pip install 'aperture-fab[sweep]'"
+#: Every table (with the page's plot) is rewritten at most this often while a sweep runs.
+REFRESH_S = 60.0
 
 
 def require(module: str) -> Any:
@@ -86,115 +106,55 @@ def resolve_point(preset: str | None, base_file: Mapping[str, Any] | None,
     return config, fabrication, validation
 
 
-@dataclass(frozen=True)
-class Job:
-    """One point's design job as a task sees it (plain values: it travels to Ray workers)."""
+class Preflight:
+    """The checks `aperture-fab design` runs before its work, on one point's settings.
 
-    point: Point
-    preset: str | None
-    base_file: Mapping[str, Any] | None
-    targets: tuple[Path, ...]
-    folder: Path
-    cpus: int = 1
-    gather: bool = False
-    #: The targets' bytes by file name when gathering: workers without the driver's disk.
-    target_files: tuple[tuple[str, bytes], ...] = ()
+    The two that render (the light floor, that the eye sees the display) cost tens of ms each;
+    their answers are kept by their exact inputs, so points that differ only in what those
+    checks do not read (iterations, validation, the process's tolerances ...) pay once."""
+
+    def __init__(self) -> None:
+        self.seen: dict[Any, str | None] = {}
+
+    def __call__(self, config: Any, fabrication: Any, targets: int = 1) -> int:
+        """Raise the checks' ValueError (e.g. a process that cannot make the plate); return
+        the optimizer's memory estimate per iteration, bytes (optimize/budget.py)."""
+        from aperture_fab.fabrication.part import design_bounds
+        from aperture_fab.fabrication.rules import check_plate
+        from aperture_fab.optics.photometry import photometry_settings
+        from aperture_fab.optimize.budget import estimate_bytes
+
+        scene, settings = config.scene, config.optimizer
+        photometry_settings(config.extra)
+        if not fabrication.force:
+            check_plate(fabrication.process, scene.plate, scene.eye.eye_relief_mm)
+        bounds = design_bounds(scene, fabrication.process)
+        key = (scene, settings, bounds, fabrication)
+        if key not in self.seen:
+            self.seen[key] = _rendered_checks(scene, settings, bounds, fabrication)
+        if self.seen[key] is not None:
+            raise ValueError(self.seen[key])
+        states = len(scene.eye.positions_mm) if scene.eye.eyebox_mm == 0 else settings.eye_states
+        return int(estimate_bytes(scene, max(1, states), "kernel", settings.precision,
+                                  targets=targets,
+                                  display_optimized=settings.display == "optimized"))
 
 
-def _set_threads(cpus: int) -> tuple[int, int | None]:
-    import torch
+def _rendered_checks(scene: Any, settings: Any, bounds: Any, fabrication: Any) -> str | None:
+    """The error of design's light-floor and eye-sees-display checks, or None."""
+    from aperture_fab.pipeline.design_job import check_eye_sees_display, check_light_floor
 
-    before: tuple[int, int | None] = (torch.get_num_threads(), None)
-    torch.set_num_threads(cpus)
     try:
-        import numba
-
-        before = (before[0], numba.get_num_threads())
-        most = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
-        numba.set_num_threads(min(cpus, most))
-    except (ImportError, ValueError):
-        pass
-    return before
+        check_light_floor(scene, settings, bounds, fabrication)
+        check_eye_sees_display(scene)
+    except ValueError as err:
+        return str(err)
+    return None
 
 
-def _restore_threads(before: tuple[int, int | None]) -> None:
-    import torch
-
-    torch.set_num_threads(before[0])
-    if before[1] is not None:
-        import numba
-
-        numba.set_num_threads(before[1])
-
-
-def run_point(job: Job) -> tuple[dict[str, Any], dict[str, bytes]]:
-    """Run one design job; return its record (point.json) and, when job.gather, its files.
-
-    Writes into job.folder (or a temporary folder when gathering, whose files come back to the
-    driver); point.json goes last. Errors become a failed record; Ctrl-C propagates.
-    """
-    from aperture_fab.pipeline import run_design
-
-    start, cpu_start = time.perf_counter(), time.process_time()
-    folder = Path(tempfile.mkdtemp(prefix=f"sweep-{job.point.id}-")) if job.gather else job.folder
-    if not job.gather:
-        _clear_attempt(folder)  # a failed attempt's files: never mix them with this run's
-    folder.mkdir(parents=True, exist_ok=True)
-    threads = _set_threads(job.cpus)
-    record: dict[str, Any] = {
-        "schema_version": SCHEMA_VERSION, "id": job.point.id,
-        "settings": {k: _plain(v) for k, v in job.point.settings},
-        "overrides": {k: _plain(v) for k, v in job.point.overrides},
-        "host": socket.gethostname(),
-    }
-    targets = list(job.targets)
-    if job.target_files:
-        (folder / "targets").mkdir()
-        targets = [folder / "targets" / name for name, _ in job.target_files]
-        for path, (_, data) in zip(targets, job.target_files, strict=True):
-            path.write_bytes(data)
-    try:
-        config, fabrication, validation = resolve_point(job.preset, job.base_file,
-                                                        dict(record["overrides"]))
-        run_design(targets, folder / "plate.stl", config, fabrication=fabrication,
-                   validation=validation, progress=False)
-        report = json.loads((folder / "report.json").read_text())
-        record.update(status="ok", figures=figures_from_report(report), error=None,
-                      traceback=None)
-    except Exception as err:  # a point's failure is data, not the sweep's end
-        if type(err).__name__ == "Interrupted":  # the optimizer's Ctrl-C: stop the sweep
-            raise KeyboardInterrupt from err
-        tail = traceback.format_exc().rstrip().splitlines()[-TRACEBACK_LINES:]
-        record.update(status="failed", figures={}, error=f"{type(err).__name__}: {err}",
-                      traceback="\n".join(tail))
-    finally:
-        _restore_threads(threads)
-    record["seconds"] = time.perf_counter() - start
-    record["cpu_seconds"] = time.process_time() - cpu_start  # this worker process, all threads
-    record["figures"]["seconds"] = record["seconds"]
-    write_atomic(folder / POINT_FILE, json.dumps(record, indent=2))
-    files: dict[str, bytes] = {}
-    if job.gather:
-        files = {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()
-                 and not p.name.startswith(".")}
-        shutil.rmtree(folder, ignore_errors=True)
-    return record, files
-
-
-def _clear_attempt(folder: Path) -> None:
-    """Remove an earlier attempt's files from a point's folder: its point.json, its checkpoint
-    and the set its manifest.json lists. Only those: anything else there is not the sweep's."""
-    from aperture_fab.pipeline.design_job import CHECKPOINT_NAME
-
-    if not folder.is_dir():
-        return
-    remove_listed(folder)
-    for name in (POINT_FILE, CHECKPOINT_NAME):
-        (folder / name).unlink(missing_ok=True)
-
-
-def _plain(value: Any) -> Any:
-    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
+def preflight(config: Any, fabrication: Any, targets: int = 1) -> int:
+    """Preflight()(...) for one point: the checks `design` runs first; the memory estimate."""
+    return Preflight()(config, fabrication, targets)
 
 
 def load_record(folder: Path) -> dict[str, Any] | None:
@@ -203,8 +163,7 @@ def load_record(folder: Path) -> dict[str, Any] | None:
         record = json.loads((folder / POINT_FILE).read_text())
     except (OSError, ValueError):
         return None
-    return record if isinstance(record, dict) and record.get("status") in ("ok", "failed") \
-        else None
+    return record if isinstance(record, dict) and record.get("status") in STATUSES else None
 
 
 @dataclass(frozen=True)
@@ -213,11 +172,16 @@ class RunOptions:
 
     out: the sweep's folder (points/<id>/ per point, the tables, sweep.html).
     backend: "ray" (a local instance, or the cluster at `address`) or "serial" (this process).
-    workers: local Ray CPUs (points at once at 1 CPU each); with an address, the most points
-        in flight (None: all of them; Ray queues them).
+    workers: local Ray CPUs; with an address, the most points in flight (None: the
+        cluster's CPUs / cpus_per_point).
     cpus_per_point: CPUs each point's task holds; its torch and numba threads.
-    retry_failed: run failed points again (finished ok points are always skipped).
-    gather: tasks send their files back to the driver, for clusters without shared storage.
+    retry_failed, retry_lost: run failed / lost points again (ok points are always skipped).
+    files: "auto" (points come back to the driver from workers that do not see `out`) or
+        "gather" (always).
+    connect_timeout_s: how long to wait for the cluster at `address`.
+    point_timeout_s: a point's longest run (None: no limit; Ray only).
+    lost_retries: more runs of a point whose worker or node was lost.
+    terminal: draw a progress bar on stderr (else plain lines through `log`).
     """
 
     out: Path
@@ -226,86 +190,91 @@ class RunOptions:
     workers: int | None = None
     cpus_per_point: int = 1
     retry_failed: bool = False
-    gather: bool = False
+    retry_lost: bool = False
+    files: FilesMode = "auto"
+    connect_timeout_s: float = 30.0
+    point_timeout_s: float | None = None
+    lost_retries: int = DEFAULT_LOST_RETRIES
+    terminal: bool = False
+
+    def __post_init__(self) -> None:
+        if self.point_timeout_s is not None and self.backend == "serial":
+            raise ValueError("--point-timeout needs Ray (a point in this process cannot be "
+                             "stopped safely); drop --serial or --point-timeout.")
+
+    def skips(self, record: Mapping[str, Any]) -> bool:
+        """Whether a finished point stays as it is on a rerun."""
+        return not ((record["status"] == "failed" and self.retry_failed)
+                    or (record["status"] == "lost" and self.retry_lost))
 
 
 @dataclass(frozen=True)
 class SweepOutcome:
-    """points: every point of the sweep, in order; records: point.json by id (finished ones)."""
+    """points: every point of the sweep, in order; records: point.json by id (finished ones).
+    stopped_by: the signal that stopped the sweep (None: it ran to the end). bytes_sent: what
+    went to the workers (targets and jobs). paths: the tables written."""
 
     points: tuple[Point, ...]
     records: Mapping[str, dict[str, Any]]
     ran: int
     skipped: int
-    interrupted: bool
+    stopped_by: int | None = None
+    bytes_sent: int = 0
+    paths: Mapping[str, Path] = dataclasses.field(default_factory=dict)
+
+    @property
+    def interrupted(self) -> bool:
+        return self.stopped_by is not None
+
+    def count(self, status: Status) -> int:
+        return sum(r["status"] == status for r in self.records.values())
 
     @property
     def failed(self) -> int:
-        return sum(r["status"] == "failed" for r in self.records.values())
+        return self.count("failed")
+
+    @property
+    def lost(self) -> int:
+        return self.count("lost")
 
 
-Runner = Callable[[list[Job], Callable[[Job, dict[str, Any], dict[str, bytes]], None]], None]
+class _Stop(KeyboardInterrupt):
+    """SIGTERM (or SIGINT), raised in the main thread to stop the sweep like Ctrl-C."""
 
-
-def _serial_runner(jobs: list[Job], done: Callable[[Job, dict[str, Any], dict[str, bytes]],
-                                                   None]) -> None:
-    for job in jobs:
-        record, files = run_point(job)
-        done(job, record, files)
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
 @contextmanager
-def _ray_runner(options: RunOptions, log: Callable[[str], None]) -> Iterator[Runner]:
-    """A local Ray instance (or a connection to the cluster at options.address) for the
-    duration of the sweep, shut down however the sweep ends."""
-    ray = require("ray")
-    if options.address is None:
-        cpus = options.workers or os.cpu_count() or 1
-        ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
-                 logging_level="warning", configure_logging=False)
-        log(f"started a local Ray instance with {cpus} CPU(s)")
-    else:
-        ray.init(address=options.address, log_to_driver=False, logging_level="warning",
-                 configure_logging=False)
-        log(f"connected to the Ray cluster at {options.address} "
-            f"({ray.cluster_resources().get('CPU', 0):g} CPUs)")
-    remote = ray.remote(num_cpus=options.cpus_per_point, max_retries=0)(run_point)
-    limit = options.workers if options.address is not None else None
+def _signals(log: Callable[[str], None]) -> Iterator[Callable[[], None]]:
+    """SIGINT and SIGTERM stop the sweep (_Stop); the yielded `shield()` makes later ones
+    print a note instead, so that the tables are written. Outside the main thread (where
+    Python cannot set handlers) nothing changes."""
+    import threading
 
-    def runner(jobs: list[Job], done: Callable[[Job, dict[str, Any], dict[str, bytes]],
-                                               None]) -> None:
-        queue = list(jobs)
-        pending: dict[Any, Job] = {}
-        try:
-            while queue or pending:
-                while queue and (limit is None or len(pending) < limit):
-                    job = queue.pop(0)
-                    pending[remote.remote(job)] = job
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                job = pending.pop(ready[0])
-                try:
-                    record, files = ray.get(ready[0])
-                except Exception as err:  # the worker died (memory, signal)
-                    record, files = _lost(job, err), {}
-                done(job, record, files)
-        except KeyboardInterrupt:
-            for ref in pending:
-                ray.cancel(ref, force=True)
-            raise
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
 
+    def stop(signum: int, frame: Any) -> None:
+        raise _Stop(signum)
+
+    def note(signum: int, frame: Any) -> None:
+        log("stopping: writing the tables of the finished points first (a moment)")
+
+    def shield() -> None:
+        for s in before:
+            signal.signal(s, note)
+
+    for s in before:
+        signal.signal(s, stop)
     try:
-        yield runner
+        yield shield
     finally:
-        ray.shutdown()
-
-
-def _lost(job: Job, err: Exception) -> dict[str, Any]:
-    """The record of a point whose task never returned."""
-    return {"schema_version": SCHEMA_VERSION, "id": job.point.id, "status": "failed",
-            "settings": {k: _plain(v) for k, v in job.point.settings},
-            "overrides": {k: _plain(v) for k, v in job.point.overrides},
-            "figures": {}, "error": f"the task was lost: {type(err).__name__}: {err}",
-            "traceback": None, "seconds": None, "host": None}
+        for s, handler in before.items():
+            signal.signal(s, handler)
 
 
 def _checker(spec: SweepSpec) -> Callable[[Mapping[str, Any]], None]:
@@ -315,44 +284,55 @@ def _checker(spec: SweepSpec) -> Callable[[Mapping[str, Any]], None]:
 
 
 class _Sweep:
-    """The bookkeeping of one run: which points are finished, progress lines, counts."""
+    """The bookkeeping of one run: which points are finished, jobs, records, the tables."""
 
-    def __init__(self, spec: SweepSpec, options: RunOptions, runner: Runner,
-                 log: Callable[[str], None]) -> None:
-        self.spec, self.options, self.runner, self.log = spec, options, runner, log
+    def __init__(self, spec: SweepSpec, options: RunOptions, progress: Progress,
+                 table: TableLog, log: Callable[[str], None]) -> None:
+        self.spec, self.options, self.progress, self.table, self.log = \
+            spec, options, progress, table, log
         self.points: dict[str, Point] = {}
         self.records: dict[str, dict[str, Any]] = {}
         self.ran = self.skipped = 0
-        self.total = 0
-        self.target_files = tuple((p.name, p.read_bytes()) for p in spec.targets) \
-            if options.gather else ()
+        self.token = secrets.token_hex(16)
+        self.listeners: list[Callable[[Point, dict[str, Any]], None]] = []
+        self.told_gathered = False
+        self.preflight = Preflight()
 
     def folder(self, point: Point) -> Path:
         return self.options.out / POINTS_DIR / point.id
 
-    def run(self, points: list[Point]) -> None:
-        """Run the points not finished yet; afterwards every one has a record."""
-        todo: list[Job] = []
-        for point in points:
-            if point.id in self.points:
-                continue  # a search can propose a point twice
-            self.points[point.id] = point
-            record = load_record(self.folder(point))
-            if record is not None and (record["status"] == "ok" or not self.options.retry_failed):
-                self.records[point.id] = record
-                self.skipped += 1
-                continue
-            todo.append(Job(point, self.spec.preset, self.spec.base_file, self.spec.targets,
-                            self.folder(point), self.options.cpus_per_point, self.options.gather,
-                            self.target_files))
-        self.total += len(todo)
-        if todo:
-            self.runner(todo, self.done)
+    def add(self, point: Point) -> bool:
+        """Register a point; True when it is to run (not finished, or to be retried)."""
+        if point.id in self.points:
+            return False
+        self.points[point.id] = point
+        record = load_record(self.folder(point))
+        if record is not None and self.options.skips(record):
+            self.records[point.id] = record
+            self.skipped += 1
+            return False
+        return True
+
+    def job(self, point: Point) -> Job | None:
+        """The point's job, or None when the checks `design` runs first refuse it (recorded
+        as failed at once, never sent to a worker)."""
+        job = Job(point, self.spec.preset, self.spec.base_file, self.spec.targets,
+                  self.spec.target_digest, self.options.out, self.token,
+                  self.options.cpus_per_point, self.options.files)
+        try:
+            config, fabrication, _ = resolve_point(self.spec.preset, self.spec.base_file,
+                                                   {k: plain(v) for k, v in point.overrides})
+            self.preflight(config, fabrication, len(self.spec.targets))
+        except ValueError as err:
+            self.done(job, lost_record(job, "failed", f"refused before running: {err}"), {})
+            return None
+        return job
 
     def done(self, job: Job, record: dict[str, Any], files: dict[str, bytes]) -> None:
         folder = self.folder(job.point)
         if files:
-            _clear_attempt(folder)  # the gathered set replaces an earlier attempt's
+            clear_attempt(folder)  # the gathered set replaces an earlier attempt's
+            self._tell_gathered(record)
         folder.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():
             if name != POINT_FILE:
@@ -360,38 +340,118 @@ class _Sweep:
         write_atomic(folder / POINT_FILE, json.dumps(record, indent=2))  # last: finished
         self.records[job.point.id] = record
         self.ran += 1
-        self.log(f"[{self.ran}/{self.total}] {summary_line(record, job.point.label())}")
+        self.table.append(job.point, record)
+        self.progress.done(record, job.point.label())
+        for listener in self.listeners:
+            listener(job.point, record)
+        self.table.refresh(list(self.points.values()), self.records)
+
+    def _tell_gathered(self, record: Mapping[str, Any]) -> None:
+        if not self.told_gathered and self.options.files == "auto":
+            self.log(f"the worker on {record.get('host')} does not see {self.options.out}: its "
+                     "points' files come back to this machine through Ray's object store "
+                     "(this --out is then their only copy)")
+            self.told_gathered = True
 
 
-def _search(sweep: _Sweep, spec: SweepSpec) -> None:
-    optuna = require("optuna")
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    sampler = optuna.samplers.NSGAIISampler(population_size=spec.population, seed=spec.seed)
-    study = optuna.create_study(directions=[o.direction for o in spec.objectives],
-                                sampler=sampler)
-    dists: dict[str, Any] = {}
-    for dim in spec.space:
-        if isinstance(dim, Choice):
-            dists[dim.key] = optuna.distributions.CategoricalDistribution(
-                [json.dumps(_plain(c)) for c in dim.choices])
-        elif isinstance(dim, FloatRange):
-            dists[dim.key] = optuna.distributions.FloatDistribution(dim.low, dim.high, log=dim.log)
-        else:
-            dists[dim.key] = optuna.distributions.IntDistribution(dim.low, dim.high, log=dim.log)
-    asked = 0
-    while asked < spec.trials:
-        trials = [study.ask(dists) for _ in range(min(spec.population, spec.trials - asked))]
-        asked += len(trials)
-        points = [make_point(spec, tuple(
-            (dim.key, _choice(trial.params[dim.key]) if isinstance(dim, Choice)
-             else trial.params[dim.key]) for dim in spec.space)) for trial in trials]
-        sweep.run(points)
-        for trial, point in zip(trials, points, strict=True):  # in trial order: deterministic
-            values = _objective_values(spec, sweep.records[point.id])
+def _grid_take(sweep: _Sweep, points: list[Point]) -> Callable[[], Job | None]:
+    """The points' jobs one by one (points: registered with sweep.add, to run)."""
+    queue = iter(points)
+
+    def take() -> Job | None:
+        for point in queue:
+            job = sweep.job(point)
+            if job is not None:
+                return job
+        return None
+    return take
+
+
+class _Search:
+    """Asynchronous NSGA-II: ask when a slot is free, tell each result as it comes."""
+
+    def __init__(self, sweep: _Sweep, spec: SweepSpec) -> None:
+        optuna = require("optuna")
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        self.optuna, self.sweep, self.spec = optuna, sweep, spec
+        sampler = optuna.samplers.NSGAIISampler(population_size=spec.population, seed=spec.seed)
+        self.study = optuna.create_study(directions=[o.direction for o in spec.objectives],
+                                         sampler=sampler)
+        self.dists = {dim.key: _distribution(optuna, dim) for dim in spec.space}
+        self.asked = 0
+        self.waiting: dict[str, list[Any]] = {}  # point id: its trials, until it finishes
+        sweep.listeners.append(self._finished)
+        for record in _finished_records(sweep, spec):  # a rerun: what is known first
+            self.study.enqueue_trial({k: json.dumps(v) if isinstance(d, Choice) else v
+                                      for (k, v), d in zip(record["settings"].items(),
+                                                           spec.space, strict=True)})
+
+    def take(self) -> Job | None:
+        while self.asked < self.spec.trials:
+            trial = self.study.ask(self.dists)
+            self.asked += 1
+            point = make_point(self.spec, tuple(
+                (dim.key, _choice(trial.params[dim.key]) if isinstance(dim, Choice)
+                 else trial.params[dim.key]) for dim in self.spec.space))
+            if point.id in self.waiting:  # proposed again while it runs (crossover of equals)
+                self.waiting[point.id].append(trial)
+                continue
+            self.waiting[point.id] = [trial]
+            if not self.sweep.add(point):
+                record = self.sweep.records.get(point.id)
+                if record is not None:  # finished before: told now, not run
+                    self._finished(point, record)
+                continue
+            job = self.sweep.job(point)
+            if job is not None:
+                return job
+        return None
+
+    def _finished(self, point: Point, record: Mapping[str, Any]) -> None:
+        values = _objective_values(self.spec, record)
+        for trial in self.waiting.pop(point.id, []):
             if values is None:
-                study.tell(trial, state=optuna.trial.TrialState.FAIL)
+                self.study.tell(trial, state=self.optuna.trial.TrialState.FAIL)
             else:
-                study.tell(trial, values)
+                self.study.tell(trial, values)
+
+
+def _distribution(optuna: Any, dim: Any) -> Any:
+    if isinstance(dim, Choice):
+        return optuna.distributions.CategoricalDistribution(
+            [json.dumps(plain(c)) for c in dim.choices])
+    if isinstance(dim, FloatRange):
+        return optuna.distributions.FloatDistribution(dim.low, dim.high, log=dim.log)
+    return optuna.distributions.IntDistribution(dim.low, dim.high, log=dim.log)
+
+
+def _finished_records(sweep: _Sweep, spec: SweepSpec) -> list[dict[str, Any]]:
+    """Finished points of this search in --out (their settings make their own id again), in
+    the order they finished; at most spec.trials of them."""
+    from aperture_fab.sweep.spec import _freeze
+
+    keys = [dim.key for dim in spec.space]
+    found = []
+    for folder in sorted((sweep.options.out / POINTS_DIR).glob("*")):
+        record = load_record(folder)
+        if record is None or list(record.get("settings", {})) != keys:
+            continue
+        settings = tuple((k, _freeze(v)) for k, v in record["settings"].items())
+        if make_point(spec, settings).id == record["id"] and _inside(spec, record["settings"]):
+            found.append(record)
+    found.sort(key=lambda r: (r.get("finished_at") or 0.0, r["id"]))
+    return found[:spec.trials]
+
+
+def _inside(spec: SweepSpec, settings: Mapping[str, Any]) -> bool:
+    for dim in spec.space:
+        value = settings[dim.key]
+        if isinstance(dim, Choice):
+            if json.dumps(value) not in {json.dumps(plain(c)) for c in dim.choices}:
+                return False
+        elif not (isinstance(value, (int, float)) and dim.low <= value <= dim.high):
+            return False
+    return True
 
 
 def _choice(text: str) -> Any:
@@ -399,41 +459,82 @@ def _choice(text: str) -> Any:
     return tuple(value) if isinstance(value, list) else value
 
 
-def _objective_values(spec: SweepSpec, record: dict[str, Any]) -> list[float] | None:
+def _objective_values(spec: SweepSpec, record: Mapping[str, Any]) -> list[float] | None:
     if record["status"] != "ok":
         return None
     values = [record["figures"].get(o.figure) for o in spec.objectives]
-    return None if any(v is None for v in values) else [float(v) for v in values]
+    if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in values):
+        return None
+    return [float(v) for v in values]
+
+
+@contextmanager
+def _executor(spec: SweepSpec, options: RunOptions, log: Callable[[str], None]
+              ) -> Iterator[Executor]:
+    if options.backend == "serial":
+        yield SerialExecutor()
+        return
+    from aperture_fab.sweep.cluster import connect
+
+    ray = require("ray")
+    quiet = {"log_to_driver": False, "logging_level": "warning", "configure_logging": False}
+    try:
+        if options.address is None:
+            cpus = options.workers or os.cpu_count() or 1
+            ray.init(num_cpus=cpus, include_dashboard=False, **quiet)
+            log(f"started a local Ray instance with {cpus} CPU(s)")
+            slots = max(1, cpus // options.cpus_per_point)
+        else:
+            connect(ray, options.address, options.connect_timeout_s, **quiet)
+            cluster_cpus = ray.cluster_resources().get("CPU", 0)
+            slots = options.workers or max(1, int(cluster_cpus) // options.cpus_per_point)
+            log(f"connected to the Ray cluster at {options.address} ({cluster_cpus:g} CPUs; "
+                f"up to {slots} point(s) at once)")
+        yield RayExecutor(ray, options.cpus_per_point, slots,
+                          tuple((p.name, p.read_bytes()) for p in spec.targets))
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
 
 
 def run_sweep(spec: SweepSpec, options: RunOptions,
               log: Callable[[str], None] = print) -> SweepOutcome:
-    """Check every point, run the unfinished ones, and return what is recorded. Ctrl-C stops
-    it (SweepOutcome.interrupted); the finished points stay recorded."""
+    """Check every point, run the unfinished ones, write the tables (as points finish and at
+    the end) and return what is recorded. Ctrl-C or SIGTERM stops it
+    (SweepOutcome.stopped_by); the finished points stay recorded, in the tables too."""
     # Absolute: Ray workers do not share this process's working folder.
     options = dataclasses.replace(options, out=options.out.resolve())
     points = grid_points(spec) if spec.mode == "grid" else []
     check_points(spec, points, _checker(spec))  # before any job starts (and before Ray)
     (options.out / POINTS_DIR).mkdir(parents=True, exist_ok=True)
     write_atomic(options.out / "sweep.toml", spec.source.read_bytes())
-    interrupted = False
-    with _runner(options, log) as runner:
-        sweep = _Sweep(spec, options, runner, log)
+    progress = Progress(len(points) or spec.trials, log, options.terminal)
+    table = TableLog(options.out, spec, REFRESH_S)
+    sweep = _Sweep(spec, options, progress, table, log)
+    write_atomic(options.out / MARKER_FILE, sweep.token)
+    stopped_by: int | None = None
+    bytes_sent = 0
+    with _signals(log) as shield:
         try:
-            if spec.mode == "grid":
-                sweep.run(points)
-            else:
-                _search(sweep, spec)
-        except KeyboardInterrupt:
-            interrupted = True
-    order = points or list(sweep.points.values())
-    return SweepOutcome(tuple(order), dict(sweep.records), sweep.ran, sweep.skipped, interrupted)
-
-
-@contextmanager
-def _runner(options: RunOptions, log: Callable[[str], None]) -> Iterator[Runner]:
-    if options.backend == "serial":
-        yield _serial_runner
-    else:
-        with _ray_runner(options, log) as runner:
-            yield runner
+            search = None if spec.mode == "grid" else _Search(sweep, spec)
+            todo = [p for p in points if sweep.add(p)]
+            progress.add(len(todo) - len(points))  # a grid: only what runs now counts
+            take = _grid_take(sweep, todo) if search is None else search.take
+            table.start(points, {p.id: r for p in points if (r := load_record(
+                sweep.folder(p))) is not None})
+            with _executor(spec, options, log) as executor:
+                scheduler = Scheduler(executor, sweep.done, lost_retries=options.lost_retries,
+                                      timeout_s=options.point_timeout_s, tick=progress.tick)
+                try:
+                    scheduler.run(take)
+                finally:
+                    bytes_sent = executor.bytes_sent
+        except KeyboardInterrupt as stop:
+            stopped_by = stop.signum if isinstance(stop, _Stop) else signal.SIGINT
+        finally:
+            shield()  # from here, the tables are written whatever the user presses
+            progress.close()
+            order = points or list(sweep.points.values())
+            paths = write_results(options.out, spec, order, sweep.records)
+    return SweepOutcome(tuple(order), dict(sweep.records), sweep.ran, sweep.skipped,
+                        stopped_by, bytes_sent, paths)

@@ -1,0 +1,419 @@
+"""Sweeps on a real cluster (issue 18): connecting, lost and failed points, timeouts, the
+tables as points finish, stopping, the dry run; and (slow) a real two-node local Ray cluster
+whose worker node is killed mid-sweep.
+
+The fast tests run the Scheduler on a fake executor (no Ray) and the sweep with a fake design
+job (tests/test_sweep.py's fake_design)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_sweep import GRID, TINY_BASE, install_fake_design, parse, write_sweep
+
+from aperture_fab.sweep.cluster import (
+    ClusterUnreachable,
+    classify,
+    connect,
+    parse_address,
+    probe,
+)
+from aperture_fab.sweep.command import run as run_command
+from aperture_fab.sweep.progress import Progress, duration
+from aperture_fab.sweep.results import note
+from aperture_fab.sweep.run import RunOptions, load_record, run_sweep
+from aperture_fab.sweep.schedule import Scheduler
+from aperture_fab.sweep.spec import grid_points, load_spec
+from aperture_fab.sweep.worker import Job
+
+
+@pytest.fixture
+def sweep_dir(tmp_path: Path, marker_png: Path) -> Path:
+    """A folder holding marker.png (the sweep files name it relative to themselves)."""
+    return tmp_path
+
+
+@pytest.fixture
+def fake_design(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
+    """run_design replaced by test_sweep's fake (a gap of 12 mm fails); its calls."""
+    return install_fake_design(monkeypatch)
+
+
+# -- connecting -------------------------------------------------------------------------------
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_wrong_address_fails_fast_with_a_connection_error() -> None:
+    port = _closed_port()
+    start = time.monotonic()
+    with pytest.raises(ClusterUnreachable) as info:
+        connect(None, f"127.0.0.1:{port}", 1.0)
+    assert time.monotonic() - start < 5
+    text = str(info.value)
+    assert f"--address 127.0.0.1:{port}" in text and "ray start --head" in text
+    assert "--connect-timeout" in text
+    assert isinstance(info.value, ConnectionError)
+
+
+def test_cli_exit_status_for_an_unreachable_cluster(sweep_dir: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("ray")
+    from aperture_fab.cli import EXIT_CANNOT_WRITE, EXIT_NO_CLUSTER, main
+
+    path = write_sweep(sweep_dir, GRID)
+    code = main(["sweep", str(path), "--address", f"127.0.0.1:{_closed_port()}",
+                 "--connect-timeout", "1", "--out", str(sweep_dir / "out")])
+    assert code == EXIT_NO_CLUSTER != EXIT_CANNOT_WRITE
+    err = capsys.readouterr().err
+    assert "no Ray cluster answered" in err and "cannot write" not in err
+
+
+def test_silent_port_hints_token_authentication(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A port that answers while Ray never does (as with a token the cluster refuses)."""
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+
+        class Hanging:
+            def init(self, **kwargs: Any) -> None:
+                time.sleep(30)
+
+        with pytest.raises(ClusterUnreachable, match="RAY_AUTH_MODE=token"):
+            connect(Hanging(), f"127.0.0.1:{port}", 0.5)
+
+
+def test_addresses() -> None:
+    assert parse_address("auto").host is None
+    assert parse_address("head:6380").port == 6380
+    assert parse_address("ray://head").port == 10001 and parse_address("ray://head").client
+    assert parse_address("head").port == 6379
+    for bad in ("head:port", "ray://", "head:70000"):
+        with pytest.raises(ValueError, match="not a Ray address"):
+            parse_address(bad)
+    probe(parse_address("auto"), 0.1)  # nothing to probe
+
+
+# -- lost and failed points -------------------------------------------------------------------
+
+
+class NodeDiedError(Exception):
+    """Named as Ray's: the node running the task went away."""
+
+
+class WorkerCrashedError(Exception):
+    """Named as Ray's: the worker process died."""
+
+
+def test_classify() -> None:
+    assert classify(NodeDiedError("node gone")) == "lost"
+    assert classify(WorkerCrashedError()) == "lost"
+    assert classify(ValueError("bad design")) == "failed"
+
+    class Sub(NodeDiedError):
+        pass
+
+    assert classify(Sub()) == "lost"
+
+
+class FakeExecutor:
+    """Runs nothing: each job's attempt answers from `script` (point index, attempt) -> an
+    exception to raise, "hang" (never finishes) or a status for its record."""
+
+    slots = 2
+    bytes_sent = 0
+
+    def __init__(self, script: dict[tuple[int, int], Any], order: list[str]) -> None:
+        self.script, self.order = script, order
+        self.jobs: dict[int, Job] = {}
+        self.cancelled: list[int] = []
+        self.n = 0
+
+    def submit(self, job: Job) -> int:
+        self.n += 1
+        self.jobs[self.n] = job
+        return self.n
+
+    def _what(self, handle: int) -> Any:
+        job = self.jobs[handle]
+        return self.script.get((self.order.index(job.point.id), job.attempt), "ok")
+
+    def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
+        ready = [h for h in handles if self._what(h) != "hang"]
+        if not ready:
+            time.sleep(timeout_s)
+        return ready[:1]
+
+    def result(self, handle: int) -> tuple[dict[str, Any], dict[str, bytes]]:
+        what, job = self._what(handle), self.jobs[handle]
+        if isinstance(what, BaseException):
+            raise what
+        return {"id": job.point.id, "status": what, "figures": {},
+                "error": None if what == "ok" else "design failed"}, {}
+
+    def cancel(self, handle: Any) -> None:
+        self.cancelled.append(handle)
+
+
+def _jobs(sweep_dir: Path, count: int = 4) -> list[Job]:
+    spec = load_spec(write_sweep(sweep_dir, GRID))
+    return [Job(p, spec.preset, spec.base_file, spec.targets, spec.target_digest,
+                sweep_dir, "token") for p in grid_points(spec)[:count]]
+
+
+def _schedule(jobs: list[Job], script: dict[tuple[int, int], Any], **kwargs: Any
+              ) -> tuple[dict[str, dict[str, Any]], FakeExecutor]:
+    executor = FakeExecutor(script, [j.point.id for j in jobs])
+    records: dict[str, dict[str, Any]] = {}
+    queue = list(jobs)
+    Scheduler(executor, lambda job, record, files: records.__setitem__(job.point.id, record),
+              **kwargs).run(lambda: queue.pop(0) if queue else None)
+    return records, executor
+
+
+def test_lost_points_are_retried_and_failures_are_not(sweep_dir: Path) -> None:
+    jobs = _jobs(sweep_dir)
+    records, executor = _schedule(jobs, {
+        (0, 1): NodeDiedError("the node running this task died"),      # lost once, then ok
+        (1, 1): "failed",                                              # a design failure
+        (2, 1): WorkerCrashedError("gone"), (2, 2): WorkerCrashedError("gone"),
+        (2, 3): WorkerCrashedError("gone"),                            # lost every time
+        (3, 1): RuntimeError("unpicklable"),                           # not a lost node
+    }, lost_retries=2)
+    first, design, lost, other = (records[j.point.id] for j in jobs)
+    assert first["status"] == "ok" and first["attempts"] == 2
+    assert note(first) is not None and note(first).startswith("lost, retried (1 time")
+    assert design["status"] == "failed" and design["attempts"] == 1 and not design["lost"]
+    assert lost["status"] == "lost" and lost["attempts"] == 3 and "--retry-lost" in lost["error"]
+    assert note(lost) is not None and note(lost).startswith("lost (3 times")
+    assert other["status"] == "failed" and "RuntimeError: unpicklable" in other["error"]
+    assert executor.n == 2 + 1 + 3 + 1  # submissions: retries are bounded
+
+
+def test_point_timeout(sweep_dir: Path) -> None:
+    jobs = _jobs(sweep_dir, 2)
+    records, executor = _schedule(jobs, {(0, 1): "hang"}, timeout_s=0.3)
+    assert records[jobs[0].point.id]["status"] == "failed"
+    assert "--point-timeout 0.3 s" in records[jobs[0].point.id]["error"]
+    assert records[jobs[1].point.id]["status"] == "ok" and executor.cancelled == [1]
+
+
+def test_in_flight_is_bounded(sweep_dir: Path) -> None:
+    jobs = _jobs(sweep_dir, 6)
+    seen: list[int] = []
+    executor = FakeExecutor({}, [j.point.id for j in jobs])
+    queue = list(jobs)
+    scheduler = Scheduler(executor, lambda *a: seen.append(len(scheduler.pending)))
+    scheduler.run(lambda: queue.pop(0) if queue else None)
+    assert len(seen) == 6 and max(seen) < executor.slots  # one finished: at most slots - 1 left
+
+
+def test_timeout_needs_ray(sweep_dir: Path) -> None:
+    with pytest.raises(ValueError, match="--point-timeout needs Ray"):
+        RunOptions(out=sweep_dir, backend="serial", point_timeout_s=5.0)
+
+
+# -- retry flags, tables as points finish ------------------------------------------------------
+
+
+def test_retry_failed_and_retry_lost_are_separate(sweep_dir: Path,
+                                                  fake_design: list[dict[str, Any]]) -> None:
+    import json
+
+    spec = load_spec(write_sweep(sweep_dir, GRID))
+    out = sweep_dir / "out"
+    first = run_sweep(spec, RunOptions(out=out, backend="serial"), lambda line: None)
+    assert first.failed == 2 and len(fake_design) == 6
+    ok = next(p for p in first.points if first.records[p.id]["status"] == "ok")
+    record = load_record(out / "points" / ok.id)
+    assert record is not None
+    record.update(status="lost", error="lost 3 time(s)")  # as if its node died every time
+    (out / "points" / ok.id / "point.json").write_text(json.dumps(record))
+    run_sweep(spec, RunOptions(out=out, backend="serial", retry_failed=True), lambda line: None)
+    assert len(fake_design) == 8  # the 2 failed ones only
+    again = run_sweep(spec, RunOptions(out=out, backend="serial", retry_lost=True),
+                      lambda line: None)
+    assert len(fake_design) == 9 and again.records[ok.id]["status"] == "ok"
+
+
+def test_results_csv_grows_as_points_finish(sweep_dir: Path,
+                                            fake_design: list[dict[str, Any]],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """After each point, results.csv holds every finished point: a driver killed then has
+    lost nothing finished (the rows are appended and flushed, not written at the end)."""
+    import aperture_fab.sweep.run as run_module
+
+    spec = load_spec(write_sweep(sweep_dir, GRID))
+    out = sweep_dir / "out"
+    seen: list[int] = []
+
+    def spy(point: Any, record: Any) -> None:
+        rows = list(csv.DictReader((out / "results.csv").open()))
+        seen.append(len(rows))
+        assert rows[-1]["id"] == point.id and rows[-1]["status"] == record["status"]
+
+    real = run_module._Sweep.__init__
+
+    def init(self: Any, *args: Any) -> None:
+        real(self, *args)
+        self.listeners.append(spy)
+
+    monkeypatch.setattr(run_module._Sweep, "__init__", init)
+    run_sweep(spec, RunOptions(out=out, backend="serial"), lambda line: None)
+    assert seen == [1, 2, 3, 4, 5, 6]
+    header = (out / "results.csv").read_text().splitlines()[0]
+    assert header.endswith("attempts,note,error,report")
+
+
+def test_sigterm_writes_the_tables(sweep_dir: Path, fake_design: list[dict[str, Any]],
+                                   monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """SIGTERM while the second point runs: the sweep stops, writes the tables of the finished
+    point (the running one is not finished) and exits 143."""
+    import aperture_fab.pipeline
+
+    real = aperture_fab.pipeline.run_design
+
+    def stopping(paths: list[Path], out: Path, config: Any, **kwargs: Any) -> None:
+        real(paths, out, config, **kwargs)
+        if len(fake_design) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(aperture_fab.pipeline, "run_design", stopping)
+    path = write_sweep(sweep_dir, GRID)
+    out = sweep_dir / "out"
+    assert run_command(parse([str(path), "--serial", "--out", str(out)])) == 128 + 15
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert [r["status"] for r in rows] == ["ok"] + ["pending"] * 5
+    assert (out / "sweep.html").is_file() and (out / "results.parquet").is_file()
+    assert signal.getsignal(signal.SIGTERM) is not None
+    assert "stopped" in capsys.readouterr().err
+
+
+def test_progress_bar_and_lines() -> None:
+    import io
+
+    clock = iter(range(0, 10_000, 10))
+    lines: list[str] = []
+    stream = io.StringIO()
+    bar = Progress(4, lines.append, terminal=True, stream=stream, clock=lambda: next(clock))
+    bar.done({"id": "a", "status": "ok", "figures": {}, "seconds": 1.0}, "x=1")
+    bar.done({"id": "b", "status": "failed", "error": "boom"}, "x=2")
+    bar.close()
+    assert "per min" in stream.getvalue() and "left" in stream.getvalue()
+    assert len(lines) == 1 and "FAILED: boom" in lines[0]  # ok points: only the bar
+    assert duration(3725) == "1 h 02 min" and duration(42) == "42 s"
+    log: list[str] = []
+    many = Progress(1000, log.append, clock=lambda: next(clock))
+    many.done({"id": "a", "status": "ok", "figures": {}, "seconds": 1.0}, "x=1")
+    for _ in range(3):  # 10 s per reading of the clock: a line once 30 s have passed
+        many.tick()
+    assert len(log) == 1 and log[0].startswith("1/1000 points (1 ok)")
+
+
+# -- dry run ----------------------------------------------------------------------------------
+
+
+def test_dry_run_refuses_an_unmakeable_point(sweep_dir: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """resin cannot make a 0.1 mm plate: --dry-run says so before any work (exit 1)."""
+    path = write_sweep(sweep_dir, "[sweep]\ntargets = ['marker.png']\npreset = 'near-eye'\n"
+                       "[grid]\n'plate.thickness_mm' = [0.1, 0.3]\n'process.name' = ['resin']\n"
+                       + TINY_BASE.replace('"plate.pitch_mm" = 0.25', '"plate.pitch_mm" = 0.8'))
+    assert run_command(parse([str(path), "--dry-run"])) == 1
+    out = capsys.readouterr().out
+    assert "refused:" in out and "plate.thickness_mm=0.1" in out and "resin range" in out
+    assert "1 refused" in out and "estimated CPU time" in out and "GB per point" in out
+
+
+def test_dry_run_of_many_points_is_quick(sweep_dir: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """1000 tiny points, each resolved and checked."""
+    grid = ("[grid]\n'optimizer.iterations' = [" + ", ".join(str(n) for n in range(10, 260))
+            + "]\n'process.name' = ['photomask', 'laser', 'resin', 'etched-foil']\n")
+    base = TINY_BASE.replace('"optimizer.iterations" = 6\n', "").replace(
+        '"plate.pitch_mm" = 0.25', '"plate.pitch_mm" = 0.8') + '"plate.thickness_mm" = 0.3\n'
+    path = write_sweep(sweep_dir, "[sweep]\ntargets = ['marker.png']\npreset = 'near-eye'\n"
+                       + grid + base)
+    start = time.perf_counter()
+    run_command(parse([str(path), "--dry-run"]))
+    seconds = time.perf_counter() - start
+    out = capsys.readouterr().out
+    assert "1000 grid points" in out and "... and 980 more" in out
+    assert seconds < 30  # the goal is 10 s; shared CI machines are slower
+
+
+# -- a real two-node cluster ------------------------------------------------------------------
+
+
+def _ray_bin() -> str | None:
+    return shutil.which("ray", path=str(Path(sys.executable).parent)) or shutil.which("ray")
+
+
+def _free_port() -> int:
+    return _closed_port()
+
+
+@pytest.mark.slow
+def test_two_node_cluster_survives_a_lost_worker_node(sweep_dir: Path, tmp_path: Path) -> None:
+    """A head node (1 CPU) and a worker node (1 CPU) on this machine, token authentication on;
+    6 tiny points; the worker node is killed once the first point has finished: every point
+    ends ok (the lost ones ran again on the head), exit status 0."""
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'aperture-fab[sweep]')")
+    ray = _ray_bin()
+    if ray is None:
+        pytest.skip("ray is installed but its `ray` command is not on the path")
+    port = _free_port()
+    env = os.environ | {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": "aperture-fab-test-token-0",
+                        "RAY_USAGE_STATS_ENABLED": "0"}
+    temp = tmp_path / "ray"
+    head = [ray, "start", "--head", f"--port={port}", "--num-cpus=1", "--include-dashboard=false",
+            f"--temp-dir={temp}", "--disable-usage-stats"]
+    worker: subprocess.Popen[bytes] | None = None
+    try:
+        subprocess.run(head, env=env, check=True, capture_output=True, timeout=90)
+        worker = subprocess.Popen([ray, "start", f"--address=127.0.0.1:{port}", "--num-cpus=1",
+                                   "--block", "--disable-usage-stats"], env=env,
+                                  start_new_session=True, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        text = "[sweep]\ntargets = ['marker.png']\npreset = 'near-eye'\n" \
+               "[grid]\n'plate.gap_mm' = [8.0, 9.0, 10.0, 11.0, 12.0, 13.0]\n" + TINY_BASE \
+               + '"process.name" = "photomask"\n"optimizer.min_efficiency" = 0.0\n'
+        path = write_sweep(sweep_dir, text)
+        out = sweep_dir / "out"
+        driver = subprocess.Popen(
+            [sys.executable, "-m", "aperture_fab.sweep", str(path), "--address",
+             f"127.0.0.1:{port}", "--out", str(out), "--workers", "2"], env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        deadline = time.monotonic() + 100
+        while time.monotonic() < deadline:  # the first point finished: kill the worker node
+            if (out / "results.csv").is_file() and \
+                    len((out / "results.csv").read_text().splitlines()) > 1:
+                break
+            time.sleep(0.2)
+        os.killpg(worker.pid, signal.SIGKILL)
+        output, _ = driver.communicate(timeout=110)
+        rows = list(csv.DictReader((out / "results.csv").open()))
+        assert driver.returncode == 0, output
+        assert [r["status"] for r in rows] == ["ok"] * 6, output
+        assert "6 points: 6 ok" in output
+    finally:
+        if worker is not None and worker.poll() is None:
+            os.killpg(worker.pid, signal.SIGKILL)
+        subprocess.run([ray, "stop", "--force"], env=env, capture_output=True, timeout=60)
