@@ -29,6 +29,7 @@ from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
     figure_loss,
+    figure_mesh_disagreement,
     figure_sweep,
     figure_thumbnails,
     figure_views,
@@ -697,7 +698,8 @@ def all_figures() -> dict[str, bytes]:
             "errors": figure_errors(target, [("as built", 0.2 * target)]),
             "loss": figure_loss(np.geomspace(1, 1e-2, 20)), "eyebox": views,
             "tolerance": figure_histogram(rng.normal(30, 2, 64), 25.0),
-            "made_front": figure_made_front(made_block())}
+            "made_front": figure_made_front(made_block()),
+            "mesh_retrace": figure_mesh_disagreement(target + 1e-3, target, 1e-3)}
 
 
 @pytest.fixture(scope="module")
@@ -763,8 +765,10 @@ def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
     parser.feed(page)
     assert len(parser.images) == 1
     # the tolerance and the part as made say why they are missing in their own words; the
-    # section of the eye positions, with nothing to show, is left out (and out of the contents)
-    assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 4
+    # section of the eye positions, with nothing to show, is left out (and out of the contents),
+    # and so is the mesh re-trace's map when the mesh was not traced
+    assert page.count("Figure not computed.") == len(FIGURE_KEYS) - 5
+    assert 'id="fig-mesh_retrace"' not in page
     assert 'id="eyebox"' not in page and 'href="#eyebox"' not in page
     assert "The part as made not computed" in page
     assert "Tolerance analysis not computed." in page

@@ -261,7 +261,11 @@ def figures_as_drawn(drawn: list[Any]) -> dict[str, Any]:
     """Every figure the page places, drawn with the functions and labels the report uses
     (evidence.assemble, eye_figures): {figure key: the matplotlib Figure}."""
     from aperture_fab.validation.evidence import _panel_label, eye_figures
-    from aperture_fab.validation.figures import figure_histogram, figure_loss
+    from aperture_fab.validation.figures import (
+        figure_histogram,
+        figure_loss,
+        figure_mesh_disagreement,
+    )
     from aperture_fab.validation.part_figures import figure_made_front
     from aperture_fab.validation.variants import SHOWN_VARIANTS
     from tests.test_report import made_block
@@ -290,7 +294,8 @@ def figures_as_drawn(drawn: list[Any]) -> dict[str, Any]:
             ("eyebox", lambda: figure_views(
                 [(f"eye at ({x:g}, 0) mm\n20.0 dB", target) for x in (-1.0, 1.0)],
                 "As built, from each eye position")),
-            ("tolerance", lambda: figure_histogram(rng.normal(30, 2, 16), 25.0))):
+            ("tolerance", lambda: figure_histogram(rng.normal(30, 2, 16), 25.0)),
+            ("mesh_retrace", lambda: figure_mesh_disagreement(target + 0.01, target, 0.01))):
         draw()
         out[key] = drawn[-1]
     return out
@@ -318,6 +323,8 @@ CAPTION_FACTS: dict[str, list[tuple[str, str]]] = {
                    ("the part as made", "The part as made (star)")],
     "eyebox": [("eye at (", "eye positions")],
     "tolerance": [("threshold", "threshold"), ("PSNR", "Histogram of PSNR")],
+    "mesh_retrace": [("mesh re-trace - exact model", "mesh re-trace - exact model"),
+                     ("dB PSNR", "titled with the PSNR"), ("noise", "RMS Monte Carlo noise")],
 }
 
 

@@ -14,7 +14,7 @@ from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.io.images import encode_png
 from aperture_fab.targets import digit
-from aperture_fab.validation.report import REPORT_VARIANTS, validate_report
+from aperture_fab.validation.report import FIGURE_KEYS, REPORT_VARIANTS, validate_report
 from aperture_fab.validation.validate import (
     MAX_TILT_SIGMA_DEG,
     YIELD_MARGIN_DB,
@@ -112,6 +112,11 @@ def test_mesh_retrace_agrees_with_the_model_within_its_noise(validated):
         level = float(np.mean(views["quantized/t"]))
     stderr = report["mesh_retrace_stderr_rms"]
     assert np.sqrt(np.mean(diff**2)) <= 2 * stderr + MODEL_FLOOR * level
+    # and the page shows where they differ, in the mesh section, under its caption
+    html = (validated / "report.html").read_text()
+    mesh = html[html.index('<section id="mesh">'):]
+    mesh = mesh[:mesh.index("</section>")]
+    assert 'id="fig-mesh_retrace"' in mesh and FIGURE_KEYS["mesh_retrace"][:40] in mesh
 
 
 def test_fit_display_adapts_the_content_to_a_fixed_plate():

@@ -26,6 +26,7 @@ from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
     figure_loss,
+    figure_mesh_disagreement,
     figure_sweep,
     figure_thumbnails,
     figure_views,
@@ -187,6 +188,10 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
             [(f"eye at ({p[0]:g}, {p[1]:g}) mm\n{psnr[k]:.1f} dB", positions[k])
              for k, p in enumerate(config.scene.eye.positions_mm)],
             "As built, from each eye position")
+    if validation.mesh_stderr is not None:
+        figures["mesh_retrace"] = figure_mesh_disagreement(
+            views["as_built_mesh"][0, 0], views["quantized"][0, 0],
+            float(np.sqrt(np.mean(validation.mesh_stderr[0] ** 2))))
     if validation.tolerance is not None:
         figures["tolerance"] = figure_histogram(
             np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])

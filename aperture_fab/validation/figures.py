@@ -18,8 +18,8 @@ from aperture_fab.io.images import linear_to_srgb
 from aperture_fab.metrics import gain
 
 __all__ = ["PANEL_INCHES", "TITLE_FONT_SIZE", "figure_views", "figure_loss", "figure_histogram",
-           "figure_eyebox_map", "figure_sweep", "figure_thumbnails", "text_width_in",
-           "wrap_to_width"]
+           "figure_eyebox_map", "figure_mesh_disagreement", "figure_sweep", "figure_thumbnails",
+           "text_width_in", "wrap_to_width"]
 
 FIGURE_DPI = 100
 #: Width and height of one image panel in figure_views (inches): a row of MAX_PANELS_PER_ROW
@@ -137,6 +137,34 @@ def figure_views(rows: list[tuple[str, np.ndarray]], title: str, *,
         ax.imshow(linear_to_srgb(np.clip(image, 0.0, 1.0)), interpolation="nearest")
         ax.set_title(label, fontsize=TITLE_FONT_SIZE)
         ax.set_axis_off()
+    return _png(fig)
+
+
+def figure_mesh_disagreement(traced: np.ndarray, exact: np.ndarray, stderr_rms: float) -> bytes:
+    """PNG of the mesh re-trace's disagreement with the exact model: traced - exact per view
+    pixel (mean over colour channels, linear light) on a scale symmetric about 0, titled with
+    the PSNR of traced against exact (peak: exact's maximum) and the trace's RMS standard
+    error, so a reader can tell noise (speckle at the standard error) from a systematic
+    difference (structure).
+
+    traced, exact: (C, ny, nx) or (ny, nx) linear views of the same shape."""
+    mesh, model = _as_rgb(traced, "traced view"), _as_rgb(exact, "exact view")
+    if mesh.shape != model.shape:
+        raise ValueError(f"traced view has shape {mesh.shape[:2]} but the exact view has "
+                         f"{model.shape[:2]}.")
+    difference = (mesh - model).mean(axis=2)
+    mse = float(np.mean((mesh - model) ** 2))
+    peak = float(model.max())
+    psnr = math.inf if mse == 0 else 10 * math.log10(peak**2 / mse) if peak > 0 else -math.inf
+    top = float(np.abs(difference).max()) or 1.0
+    fig = _figure(*PLOT_INCHES)
+    ax = fig.add_subplot()
+    shown = ax.imshow(difference, cmap="RdBu_r", vmin=-top, vmax=top, interpolation="nearest")
+    ax.set_title(wrap_to_width(f"mesh re-trace vs exact model: {psnr:.1f} dB PSNR, noise "
+                               f"{stderr_rms:.2g} RMS", PLOT_INCHES[0] * TITLE_WIDTH_SHARE,
+                               TITLE_FONT_SIZE), fontsize=TITLE_FONT_SIZE)
+    ax.set_axis_off()
+    fig.colorbar(shown, ax=ax, label="mesh re-trace - exact model", shrink=0.9)
     return _png(fig)
 
 

@@ -164,6 +164,12 @@ FIGURE_KEYS: dict[str, str] = {
                   "like the part's.",
     "eyebox": "What the eye sees through the part as built from each of the scene's eye "
               "positions (eye.positions_mm), titled with the position and its PSNR.",
+    "mesh_retrace": "The independent ray trace through the written mesh against the exact model "
+                    "of the holes as drawn, per view pixel at the nominal eye point (first "
+                    "target): mesh re-trace - exact model, mean over colour channels, in linear "
+                    "light, on a colour scale symmetric about 0; titled with the PSNR of the "
+                    "trace against the model and its RMS Monte Carlo noise. Speckle at the noise "
+                    "is the trace's sampling; structure would be a real difference.",
     "tolerance": "Histogram of PSNR over the tolerance samples (parts drawn with the process's "
                  "errors, the gap's and the tilt's); the red line marks the yield threshold.",
 }

@@ -396,7 +396,8 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
                       if tolerance is None else
                       _img(figures, "tolerance") + tolerance_table(tolerance)),
         "fabrication": fabrication_html(report["fabrication"]),
-        "mesh": mesh_html(report["mesh"]),
+        "mesh": mesh_html(report["mesh"]) + (_img(figures, "mesh_retrace")
+                                             if "mesh_retrace" in figures else ""),
         "timings": timings_html(report["timings_s"]),
         "scene": scene_html(report["scene"]),
         "config": config_html(report["config"], report["versions"]),
