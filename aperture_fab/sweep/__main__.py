@@ -6,11 +6,13 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from aperture_fab.sweep.cluster import ClusterUnreachable
 from aperture_fab.sweep.command import add_parser
 
 #: The exit statuses of `aperture-fab` (cli.py) for these errors.
 EXIT_BAD_INPUT = 3
 EXIT_CANNOT_WRITE = 4
+EXIT_NO_CLUSTER = 7
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -23,6 +25,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, TypeError, FileNotFoundError) as err:  # as `aperture-fab` reports them
         print(f"aperture-fab: error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except ClusterUnreachable as err:  # a ConnectionError: not a file error
+        print(f"aperture-fab: error: {err}", file=sys.stderr)
+        return EXIT_NO_CLUSTER
     except OSError as err:
         print(f"aperture-fab: error: {err}", file=sys.stderr)
         return EXIT_CANNOT_WRITE

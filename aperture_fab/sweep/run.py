@@ -110,8 +110,9 @@ class Preflight:
     """The checks `aperture-fab design` runs before its work, on one point's settings.
 
     The two that render (the light floor, that the eye sees the display) cost tens of ms each;
-    their answers are kept by their exact inputs, so points that differ only in what those
-    checks do not read (iterations, validation, the process's tolerances ...) pay once."""
+    their answers are kept by exactly the inputs they read, so points that differ only in what
+    those checks do not read (iterations, validation, the process's tolerances ...) pay
+    once."""
 
     def __init__(self) -> None:
         self.seen: dict[Any, str | None] = {}
@@ -129,7 +130,10 @@ class Preflight:
         if not fabrication.force:
             check_plate(fabrication.process, scene.plate, scene.eye.eye_relief_mm)
         bounds = design_bounds(scene, fabrication.process)
-        key = (scene, settings, bounds, fabrication)
+        # Exactly what the two checks read (check_light_floor: the floor, the states drawn
+        # by eye_states and seed, the bounds, the process's name for its message).
+        key = (scene, settings.min_efficiency, settings.eye_states, settings.seed, bounds,
+               fabrication.process.name)
         if key not in self.seen:
             self.seen[key] = _rendered_checks(scene, settings, bounds, fabrication)
         if self.seen[key] is not None:

@@ -92,10 +92,8 @@ class RayExecutor:
 
     def __init__(self, ray: Any, cpus: int, slots: int, targets: tuple[tuple[str, bytes], ...]
                  ) -> None:
-        import cloudpickle
-
         self.ray, self.slots = ray, slots
-        self.pickle = cloudpickle.dumps
+        self.pickle = ray.cloudpickle.dumps  # Ray's own copy: what it sends is what we count
         # max_retries=0: the Scheduler retries lost tasks itself (it must know which were).
         self.remote = ray.remote(num_cpus=cpus, max_retries=0, retry_exceptions=False)(run_point)
         self.targets = ray.put(targets)
