@@ -138,6 +138,10 @@ def run_render(
                          "(rays per view pixel and hole; the default is 12).")
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
+    eye = config.scene.eye
+    # The flags' values are checked (and named as flags) before any work.
+    _check_eye_state(config.scene, eye_mm or eye.positions_mm[0],
+                     eye.pupil_mm if pupil_mm is None else float(pupil_mm), focus_mm)
     fabrication = fabrication_settings(config.extra, {"process": process})
     design = design_beside(config_path, part, kind)
     if design is not None:
