@@ -800,7 +800,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         mm_per_px = args.scale_mm_per_px
     else:
         mm_per_px = mm_per_px_of_dpi(args.dpi)
-    result = run_measure(args.scan, args.design, args.out, mm_per_px, args.encoding)
+    result = run_measure(args.scan, args.design, args.out, mm_per_px, args.encoding,
+                         command=args.command_line)
     m = result.measurement
     output: Output = args.output
     output.timings(result.timings_s)
@@ -812,7 +813,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     output.detail(f"process on this plate: radius bias {m.bias_mm * 1000:.2f} um, sigma "
                   f"{m.sigma_mm * 1000:.2f} um; registration residual "
                   f"{m.registration.residual_mm * 1000:.2f} um RMS")
-    output.result(f"wrote {result.folder}/ (holes.csv, measured.json, measured.html): "
+    output.result(f"wrote {result.folder}/ (holes.csv, measured.json, measured.html, "
+                  "design.toml: a design folder of the plate as made): "
                   f"{m.count('ok')} of {m.design.count} holes measured, {m.count('blocked')} "
                   f"blocked, {len(m.extra_index)} extra opening(s)")
     return EXIT_OK
@@ -878,9 +880,11 @@ SCAN is a back-lit transmission scan of the made plate (a flatbed scanner's tran
 are fitted to sub-pixel (erf edge), registered to the design (rotation, mirror, scale,
 translation) and compared with it. Outputs in --out: holes.csv (the holes as made, in the
 design's format), measured.json (registration, per-hole deviations, defects, the process's
-bias and sigma on this plate) and measured.html. A scan that does not fit the design (another
-plate, a wrong scale) or shows no holes exits 3; a mirrored scan is measured mirrored, with a
-warning. See docs/measure.md.
+bias and sigma on this plate) and measured.html, with design.toml (the design's, the process's
+bias and random errors 0) and design.npz: the folder reads as a design folder of the plate as
+made, so `validate DIR/holes.csv TARGET` judges it. A scan that does not fit the design
+(another plate, a wrong scale) or shows no holes exits 3; a mirrored scan is measured
+mirrored, with a warning. See docs/measure.md.
 """
 
 

@@ -1,5 +1,7 @@
 """Write a simulated back-lit scan of a design folder's plate as made, to try `aperture-fab
-measure` without a scanner (the simulator of aperture_fab.measure.simulate).
+measure` without a scanner (the simulator of aperture_fab.measure.simulate). The plate is made
+with the design's process errors (its radius bias and sigma, its position sigma) unless the
+flags say otherwise.
 
     python examples/simulate_scan.py outputs/x --dpi 4800 --out scan.png
 """
@@ -11,8 +13,13 @@ from pathlib import Path
 
 import png
 
+from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.measure.job import read_design_part
 from aperture_fab.measure.simulate import ScanSettings, simulate_scan
+from aperture_fab.pipeline.saved import CONFIG_NAME, read_config
+
+#: Micrometres per millimetre (the flags take um).
+UM = 1000.0
 
 
 def main() -> None:
@@ -26,12 +33,28 @@ def main() -> None:
     parser.add_argument("--blocked", type=int, default=1, help="holes that did not open")
     parser.add_argument("--dust", type=int, default=2, help="specks of each kind")
     parser.add_argument("--bits", type=int, choices=(8, 16), default=16)
+    parser.add_argument("--radius-bias-um", type=float, default=None,
+                        help="made radius - drawn, um (default: the design's process's)")
+    parser.add_argument("--radius-sigma-um", type=float, default=None,
+                        help="random radius error, um (default: the process's)")
+    parser.add_argument("--position-sigma-um", type=float, default=None,
+                        help="random position error per axis, um (default: the process's)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     part = read_design_part(args.design)
+    config = read_config(args.design / CONFIG_NAME)
+    process = fabrication_settings(config.extra, {}).process
+
+    def mm(flag: float | None, default_mm: float) -> float:
+        return default_mm if flag is None else flag / UM
+
     settings = ScanSettings(dpi=args.dpi, rotation_deg=args.rotation_deg, mirror=args.mirror,
                             blocked=args.blocked, dust_open=args.dust, dust_dark=args.dust,
-                            bits=args.bits, seed=args.seed)
+                            bits=args.bits, seed=args.seed,
+                            radius_bias_mm=mm(args.radius_bias_um, process.radius_bias_mm),
+                            radius_sigma_mm=mm(args.radius_sigma_um, process.radius_sigma_mm),
+                            position_sigma_mm=mm(args.position_sigma_um,
+                                                 process.position_sigma_mm))
     scan = simulate_scan(part.layout, settings, part.corner_cut_mm)
     height, width = scan.image.shape
     with args.out.open("wb") as f:

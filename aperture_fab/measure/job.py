@@ -1,27 +1,47 @@
-"""The `aperture-fab measure` job: read a scan and a design folder, measure, write holes.csv,
-measured.json and measured.html (each atomically) into the output folder."""
+"""The `aperture-fab measure` job: read a scan and a design folder, measure, and publish into
+the output folder (one set with its manifest.json, aperture_fab.io.manifest) holes.csv,
+measured.json and measured.html, plus what makes the folder read as a design folder of the
+plate as made: design.toml (the design's, the process's bias and random errors set to 0) and
+the design's design.npz (its display content), so that `validate`, `render` and `display`
+judge the plate as made unchanged (issue 17, item 2)."""
 
 from __future__ import annotations
 
 import json
+import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.part import Part, fabrication_settings
+from aperture_fab.fabrication.process import MAX_OPTICAL_DENSITY
 from aperture_fab.io.files import output_folder, write_atomic
 from aperture_fab.io.formats import holes_csv
+from aperture_fab.io.manifest import publish, staging
+from aperture_fab.measure.folder import AS_MADE_PROCESS, derived_config
 from aperture_fab.measure.measure import Measurement, NoHolesError, measure_plate
 from aperture_fab.measure.register import RegistrationError
 from aperture_fab.measure.report import measured_json, measured_layout, measured_page
 from aperture_fab.measure.scan import ScanEncoding, decode_scan
-from aperture_fab.pipeline.saved import CONFIG_NAME, load_part, read_config
+from aperture_fab.pipeline.saved import (
+    CONFIG_NAME,
+    DESIGN_NAME,
+    MEASURED_NAME,
+    load_part,
+    read_config,
+)
 
 __all__ = ["HOLES_NAME", "MeasureResult", "read_design_part", "run_measure"]
 
 HOLES_NAME = "holes.csv"
-JSON_NAME = "measured.json"
+JSON_NAME = MEASURED_NAME
 PAGE_NAME = "measured.html"
+#: The command a manifest names when the Python API, not the command line, ran the job.
+MEASURE_COMMAND = ("python", "-c", "aperture_fab.measure.job.run_measure(...)")
 
 
 @dataclass(frozen=True)
@@ -62,32 +82,77 @@ def _read_scan(path: Path, encoding: ScanEncoding) -> bytes:
                          "file you may read.") from err
 
 
-def run_measure(scan: Path, design: Path, out: Path, mm_per_px: float,
-                encoding: ScanEncoding = "linear") -> MeasureResult:
-    """Measure `scan` (an image file) of the plate made from the design folder `design` at
-    mm_per_px, and write the results into the folder `out`."""
-    timings: dict[str, float] = {}
-    start = time.perf_counter()
-    part = read_design_part(design)
+def check_out(out: Path, design: Path) -> None:
+    """Refuse an --out that is the design folder, or another design's folder: publishing the
+    measured set there would replace the design's holes.csv and design.toml."""
+    if out.exists() and design.exists() and out.resolve() == design.resolve():
+        raise ValueError(f"--out {out} is the design folder; measure writes the plate as made "
+                         "(its own holes.csv and design.toml) as a set of its own. Give a new "
+                         f"folder, e.g. --out {design.with_name(design.name + '_made')}.")
+    if (out / CONFIG_NAME).is_file() and not (out / JSON_NAME).is_file():
+        raise ValueError(f"--out {out} holds a design ({CONFIG_NAME}) that measure did not "
+                         "write; publishing there would replace it. Give a new folder.")
+
+
+def as_made_config(design: Path, scan: Path, measurement: Measurement) -> str:
+    """The measured folder's design.toml: the design's, with the process's radius bias and
+    random errors 0 (holes.csv holds the holes as made) and, where the scan resolved it, the
+    solid's optical density as measured; a note of where it came from."""
+    source = design / CONFIG_NAME
+    process: dict[str, float | str] = dict(AS_MADE_PROCESS)
+    if not measurement.solid_at_floor and 0 < measurement.optical_density <= MAX_OPTICAL_DENSITY:
+        process["optical_density"] = round(measurement.optical_density, 3)
+    note = (f"The plate as made: measured by `aperture-fab measure` from the scan {scan}",
+            f"against the design {design} (issue 17). holes.csv holds the measured holes, so",
+            "[process] radius_bias_mm, radius_sigma_mm and position_sigma_mm are 0 (nothing to",
+            "add, no more random error to draw)"
+            + ("; optical_density is the scan's." if "optical_density" in process else "."))
+    text = source.read_text(encoding="utf-8-sig")
+    return derived_config(text, str(source), process, note)
+
+
+def _measure(scan: Path, design: Path, layout: HoleLayout, mm_per_px: float,
+             encoding: ScanEncoding, what: str) -> tuple[Measurement, np.ndarray]:
+    """(measurement, image) of `scan` against `layout` (the `what` of the design folder), the
+    refusals naming the scan and what was expected."""
     image = decode_scan(_read_scan(scan, encoding), str(scan), encoding)
-    timings["read_s"] = time.perf_counter() - start
-    start = time.perf_counter()
     try:
-        measurement = measure_plate(image, part.layout, mm_per_px)
+        return measure_plate(image, layout, mm_per_px), image
     except NoHolesError as err:
-        raise NoHolesError(f"scan {scan}: {err}. Expected the plate's {part.layout.count} "
+        raise NoHolesError(f"scan {scan}: {err}. Expected the {what}'s {layout.count} "
                            "holes as bright disks on the dark solid: scan with the "
                            "transparency unit (back light) on, the plate flat on the glass, "
                            "and save the scan linear (gamma 1.0).") from err
     except RegistrationError as err:
-        raise RegistrationError(f"scan {scan} measured against the design {design} "
-                                f"({part.layout.count} holes): {err}") from err
+        raise RegistrationError(f"scan {scan} measured against the {what} of {design} "
+                                f"({layout.count} holes): {err}") from err
+
+
+def run_measure(scan: Path, design: Path, out: Path, mm_per_px: float,
+                encoding: ScanEncoding = "linear",
+                command: Sequence[str] | None = None) -> MeasureResult:
+    """Measure `scan` (an image file) of the plate made from the design folder `design` at
+    mm_per_px, and publish the results into the folder `out` as a design folder of the plate
+    as made (module docstring)."""
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    check_out(out, design)
+    part = read_design_part(design)
+    timings["read_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    measurement, image = _measure(scan, design, part.layout, mm_per_px, encoding, "plate")
     timings["measure_s"] = time.perf_counter() - start
     start = time.perf_counter()
     folder = output_folder(out)
     summary = measured_json(measurement, str(scan), str(design))
-    write_atomic(folder / HOLES_NAME, holes_csv(measured_layout(measurement)))
-    write_atomic(folder / JSON_NAME, json.dumps(summary, indent=1) + "\n")
-    write_atomic(folder / PAGE_NAME, measured_page(measurement, image, summary))
+    config_text = as_made_config(design, scan, measurement)
+    with staging(folder) as staged:
+        write_atomic(staged / HOLES_NAME, holes_csv(measured_layout(measurement)))
+        write_atomic(staged / JSON_NAME, json.dumps(summary, indent=1) + "\n")
+        write_atomic(staged / PAGE_NAME, measured_page(measurement, image, summary))
+        write_atomic(staged / CONFIG_NAME, config_text)
+        if (design / DESIGN_NAME).is_file():  # the display content the plate is shown with
+            shutil.copyfile(design / DESIGN_NAME, staged / DESIGN_NAME)
+        publish(staged, folder, command if command is not None else MEASURE_COMMAND)
     timings["write_s"] = time.perf_counter() - start
     return MeasureResult(folder, measurement, tuple(summary["notes"]), timings)

@@ -31,6 +31,7 @@ from aperture_fab.optics.scene import Scene
 __all__ = [
     "CONFIG_NAME",
     "DESIGN_NAME",
+    "MEASURED_NAME",
     "PartKind",
     "SavedDesign",
     "check_design",
@@ -39,6 +40,7 @@ __all__ = [
     "design_beside",
     "design_display",
     "load_part",
+    "measured_scan",
     "part_kind",
     "read_config",
     "read_design",
@@ -54,6 +56,9 @@ MAX_DESIGN_ARRAY_BYTES = 4 << 30
 PART_KINDS: dict[str, PartKind] = {".npz": "design", ".csv": "holes", ".stl": "mesh"}
 DESIGN_NAME = "design.npz"
 CONFIG_NAME = "design.toml"
+#: What `aperture-fab measure` writes beside the plate as made (issue 17): its folder reads as
+#: a design folder (design.toml with no process errors, design.npz, holes.csv as measured).
+MEASURED_NAME = "measured.json"
 #: A mesh's thickness may differ from the config's by this share (float32 STL rounding).
 THICKNESS_RTOL = 1e-4
 
@@ -309,6 +314,16 @@ def load_part(path: Path, kind: PartKind, config: Config, fabrication: Fabricati
         part = Part(layout, mesh, check_mesh(mesh), 0.0)
     broken = layout_violations(part.layout, scene.plate, process)
     return replace(part, layout=replace(part.layout, violations=broken))
+
+
+def measured_scan(folder: Path) -> str | None:
+    """The scan a measured plate's folder was measured from (its measured.json's "scan", as
+    `aperture-fab measure` recorded it), or None when the folder is no measured plate's."""
+    try:
+        scan = json.loads((folder / MEASURED_NAME).read_text(encoding="utf-8")).get("scan")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return scan if isinstance(scan, str) and scan else None
 
 
 def design_beside(config_path: Path, part: Path, kind: PartKind) -> SavedDesign | None:

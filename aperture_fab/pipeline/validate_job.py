@@ -43,6 +43,7 @@ from aperture_fab.pipeline.saved import (
     check_design,
     design_beside,
     load_part,
+    measured_scan,
     part_kind,
     read_config,
 )
@@ -226,14 +227,19 @@ def run_validate(
     if history.size == 0:  # nothing was optimized here: the loss of the part as it is
         history = np.array([checked.metrics["as_built"][names[0]]["mse"]])
     start = time.perf_counter()
+    # A plate measured from a scan (`aperture-fab measure`): the report says so and names it.
+    scan = measured_scan(config_path.parent)
+    part_file = part.name if scan is None else (f"{part.name}, the plate as made, measured "
+                                                f"from the scan {scan}")
     evidence = assemble(config, tuple(names), view_targets, shown, history, loaded,
-                        fabrication.process, checked, timings, part_file=part.name,
+                        fabrication.process, checked, timings, part_file=part_file,
                         command=command)
     report = dict(evidence.report)
     report["timings_s"] = {**report["timings_s"], "report_s": time.perf_counter() - start}
     report["checked_part"] = {"path": str(part), "kind": kind, "config": str(config_path),
                               "display": source,
-                              "design": None if design is None else str(design.path)}
+                              "design": None if design is None else str(design.path),
+                              "measured_from_scan": scan}
     with staging(folder) as staged:
         write_atomic(staged / "views.npz", evidence.views_npz)
         write_atomic(staged / "report.html", evidence.html)
