@@ -800,6 +800,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         mm_per_px = args.scale_mm_per_px
     else:
         mm_per_px = mm_per_px_of_dpi(args.dpi)
+    if args.coupon:
+        return _measure_coupon(args, mm_per_px)
     result = run_measure(args.scan, args.design, args.out, mm_per_px, args.encoding,
                          command=args.command_line)
     m = result.measurement
@@ -817,6 +819,27 @@ def _cmd_measure(args: argparse.Namespace) -> int:
                   "design.toml: a design folder of the plate as made): "
                   f"{m.count('ok')} of {m.design.count} holes measured, {m.count('blocked')} "
                   f"blocked, {len(m.extra_index)} extra opening(s)")
+    return EXIT_OK
+
+
+def _measure_coupon(args: argparse.Namespace, mm_per_px: float) -> int:
+    """measure --coupon: the process as the calibration coupon's scan shows it."""
+    from aperture_fab.measure.job import PROCESS_NAME, run_measure_coupon
+
+    result = run_measure_coupon(args.scan, args.design, args.out, mm_per_px, args.encoding,
+                                command=args.command_line)
+    output: Output = args.output
+    output.timings(result.timings_s)
+    for note in result.notes:
+        (output.warn if "mirrored" in note else output.detail)(note)
+    for block in result.calibration.blocks:
+        output.detail(f"  {block.drawn_diameter_mm * 1000:7.2f} um drawn: {block.opened} of "
+                      f"{block.holes} came through, made radius "
+                      + ("n/a" if block.measured == 0 else
+                         f"{block.radius_mean_mm * 1000:.2f} um"))
+    values = ", ".join(f"{k} = {v:g}" for k, v in result.process.items())
+    output.result(f"wrote {result.folder}/{PROCESS_NAME} ([process] {values}; design "
+                  f"--config takes it), coupon_holes.csv, measured.json, measured.html")
     return EXIT_OK
 
 
@@ -874,6 +897,7 @@ See docs/tracking.md.
 MEASURE_EPILOG = """\
 examples:
   aperture-fab measure scan.png --design outputs/x --dpi 4800 --out outputs/x_made
+  aperture-fab measure coupon.png --design outputs/x --coupon --out outputs/x_coupon
 
 SCAN is a back-lit transmission scan of the made plate (a flatbed scanner's transparency unit,
 2400 to 4800 dpi, saved linear: gamma 1.0), 8- or 16-bit, grey or RGB, PNG or TIFF. The holes
@@ -884,7 +908,10 @@ bias and sigma on this plate) and measured.html, with design.toml (the design's,
 bias and random errors 0) and design.npz: the folder reads as a design folder of the plate as
 made, so `validate DIR/holes.csv TARGET` judges it. A scan that does not fit the design
 (another plate, a wrong scale) or shows no holes exits 3; a mirrored scan is measured
-mirrored, with a warning. See docs/measure.md.
+mirrored, with a warning. With --coupon SCAN is of the design folder's calibration coupon:
+--out gets process.toml (the design's config, its [process] as the coupon measured it: the
+smallest drawn hole that came through, the radius bias and sigma, the position sigma), for
+`design --config`. See docs/measure.md.
 """
 
 
@@ -1041,6 +1068,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the pixel size in mm (a microscope or camera image)")
     p.add_argument("--encoding", choices=("linear", "srgb"), default="linear",
                    help="how the scan's values encode light (default linear: gamma 1.0)")
+    p.add_argument("--coupon", action="store_true",
+                   help="the scan is of the design's calibration coupon (coupon.stl/svg): "
+                   "write the process it shows as DIR/process.toml, a config design takes")
     p.set_defaults(func=_cmd_measure)
 
     p = sub.add_parser("presets", help="list the presets with their key numbers")

@@ -16,15 +16,23 @@ from pathlib import Path
 
 import numpy as np
 
+from aperture_fab.config.config import parse_toml, resolve
+from aperture_fab.fabrication.coupon import Coupon, calibration_coupon, coupon_part
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.part import Part, fabrication_settings
 from aperture_fab.fabrication.process import MAX_OPTICAL_DENSITY
 from aperture_fab.io.files import output_folder, write_atomic
 from aperture_fab.io.formats import holes_csv
-from aperture_fab.io.manifest import publish, staging
+from aperture_fab.io.manifest import check_folder, publish, staging
+from aperture_fab.measure.coupon import (
+    COUPON_MIN_MATCH_SHARE,
+    CouponCalibration,
+    calibrate_coupon,
+    process_overrides,
+)
 from aperture_fab.measure.folder import AS_MADE_PROCESS, derived_config
 from aperture_fab.measure.measure import Measurement, NoHolesError, measure_plate
-from aperture_fab.measure.register import RegistrationError
+from aperture_fab.measure.register import MIN_MATCH_SHARE, RegistrationError
 from aperture_fab.measure.report import measured_json, measured_layout, measured_page
 from aperture_fab.measure.scan import ScanEncoding, decode_scan
 from aperture_fab.pipeline.saved import (
@@ -35,11 +43,16 @@ from aperture_fab.pipeline.saved import (
     read_config,
 )
 
-__all__ = ["HOLES_NAME", "MeasureResult", "read_design_part", "run_measure"]
+__all__ = ["HOLES_NAME", "PROCESS_NAME", "CouponResult", "MeasureResult", "read_design_part",
+           "run_measure", "run_measure_coupon"]
 
 HOLES_NAME = "holes.csv"
 JSON_NAME = MEASURED_NAME
 PAGE_NAME = "measured.html"
+#: What `measure --coupon` writes: the process as measured, a config `design --config` takes,
+#: and the coupon's holes as made.
+PROCESS_NAME = "process.toml"
+COUPON_HOLES_NAME = "coupon_holes.csv"
 #: The command a manifest names when the Python API, not the command line, ran the job.
 MEASURE_COMMAND = ("python", "-c", "aperture_fab.measure.job.run_measure(...)")
 
@@ -68,6 +81,35 @@ def read_design_part(folder: Path) -> Part:
                              "`aperture-fab design` wrote for the plate.")
     config = read_config(config_path)
     return load_part(table, "holes", config, fabrication_settings(config.extra, {}), config_path)
+
+
+@dataclass(frozen=True)
+class CouponResult:
+    """What `run_measure_coupon` did: folder (where it wrote), measurement (of the coupon),
+    calibration (the process it shows), process (the [process] values written), notes,
+    timings_s (seconds per stage)."""
+
+    folder: Path
+    measurement: Measurement
+    calibration: CouponCalibration
+    process: dict[str, float]
+    notes: tuple[str, ...]
+    timings_s: dict[str, float]
+
+
+def read_design_coupon(folder: Path) -> tuple[Coupon, Part]:
+    """The calibration coupon of a design folder (the one `design` wrote as coupon.stl, .svg
+    and coupon_holes.csv: rebuilt from its design.toml's process and plate) and its part; the
+    folder checked against its manifest."""
+    config_path = folder / CONFIG_NAME
+    if not config_path.is_file():
+        raise ValueError(f"--design {folder} has no {CONFIG_NAME}; give the folder `aperture-fab "
+                         "design` wrote (it holds the coupon: coupon.stl, coupon.svg).")
+    check_folder(folder)
+    config = read_config(config_path)
+    process = fabrication_settings(config.extra, {}).process
+    coupon = calibration_coupon(process, config.scene.plate)
+    return coupon, coupon_part(coupon, process)
 
 
 def _read_scan(path: Path, encoding: ScanEncoding) -> bytes:
@@ -112,12 +154,13 @@ def as_made_config(design: Path, scan: Path, measurement: Measurement) -> str:
 
 
 def _measure(scan: Path, design: Path, layout: HoleLayout, mm_per_px: float,
-             encoding: ScanEncoding, what: str) -> tuple[Measurement, np.ndarray]:
+             encoding: ScanEncoding, what: str, min_match_share: float = MIN_MATCH_SHARE
+             ) -> tuple[Measurement, np.ndarray]:
     """(measurement, image) of `scan` against `layout` (the `what` of the design folder), the
     refusals naming the scan and what was expected."""
     image = decode_scan(_read_scan(scan, encoding), str(scan), encoding)
     try:
-        return measure_plate(image, layout, mm_per_px), image
+        return measure_plate(image, layout, mm_per_px, min_match_share), image
     except NoHolesError as err:
         raise NoHolesError(f"scan {scan}: {err}. Expected the {what}'s {layout.count} "
                            "holes as bright disks on the dark solid: scan with the "
@@ -126,6 +169,54 @@ def _measure(scan: Path, design: Path, layout: HoleLayout, mm_per_px: float,
     except RegistrationError as err:
         raise RegistrationError(f"scan {scan} measured against the {what} of {design} "
                                 f"({layout.count} holes): {err}") from err
+
+
+def run_measure_coupon(scan: Path, design: Path, out: Path, mm_per_px: float,
+                       encoding: ScanEncoding = "linear",
+                       command: Sequence[str] | None = None) -> CouponResult:
+    """Measure `scan` of the calibration coupon of the design folder `design` and publish into
+    `out`: process.toml (the design's config with the [process] the coupon measured: `design
+    --config` takes it), coupon_holes.csv (the coupon's holes as made), measured.json (with a
+    "coupon" block: every block's holes, opened and measured, and the process's values) and
+    measured.html."""
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    check_out(out, design)
+    coupon, part = read_design_coupon(design)
+    timings["read_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    measurement, image = _measure(scan, design, part.layout, mm_per_px, encoding,
+                                  "calibration coupon", COUPON_MIN_MATCH_SHARE)
+    calibration = calibrate_coupon(measurement, coupon)
+    timings["measure_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    values = process_overrides(calibration)
+    note = ("The process as measured on the calibration coupon: `aperture-fab measure --coupon`",
+            f"of the scan {scan}, coupon of the design {design} (issue 17). [process] holds",
+            "the smallest drawn hole that came through whole (min_hole_mm), the made - drawn",
+            "radius bias, the radius and position sigmas; the rest is the design's config.",
+            f"Use it: aperture-fab design TARGET --config {out / PROCESS_NAME}")
+    text = derived_config((design / CONFIG_NAME).read_text(encoding="utf-8-sig"),
+                          str(design / CONFIG_NAME), values, note)
+    config = resolve(None, parse_toml(text, PROCESS_NAME))  # refused here, not by design
+    fabrication_settings(config.extra, {})
+    folder = output_folder(out)
+    summary = measured_json(measurement, str(scan), str(design))
+    smallest = calibration.blocks[0]
+    if smallest.complete:
+        summary["notes"].append(
+            f"Every block came through, the smallest ({smallest.drawn_diameter_mm * 1000:.1f} um "
+            "drawn) too: the process's smallest hole is at most that.")
+    summary["coupon"] = calibration.as_json() | {"process": values}
+    with staging(folder) as staged:
+        write_atomic(staged / COUPON_HOLES_NAME, holes_csv(measured_layout(measurement)))
+        write_atomic(staged / JSON_NAME, json.dumps(summary, indent=1) + "\n")
+        write_atomic(staged / PAGE_NAME, measured_page(measurement, image, summary))
+        write_atomic(staged / PROCESS_NAME, text)
+        publish(staged, folder, command if command is not None else MEASURE_COMMAND)
+    timings["write_s"] = time.perf_counter() - start
+    return CouponResult(folder, measurement, calibration, values, tuple(summary["notes"]),
+                        timings)
 
 
 def run_measure(scan: Path, design: Path, out: Path, mm_per_px: float,

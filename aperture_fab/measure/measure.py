@@ -13,7 +13,7 @@ import numpy as np
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.measure.detect import detect_blobs
 from aperture_fab.measure.fit import CircleFits, LightField, fit_circles, light_field
-from aperture_fab.measure.register import Registration, register
+from aperture_fab.measure.register import MIN_MATCH_SHARE, Registration, register
 
 __all__ = ["HOLE_STATES", "HoleState", "Measurement", "NoHolesError", "measure_plate"]
 
@@ -101,13 +101,15 @@ def _openings(image: np.ndarray, design: HoleLayout, mm_per_px: float
     return fits, light, inside + 1, blobs.labels, blobs.noise
 
 
-def measure_plate(image: np.ndarray, design: HoleLayout, mm_per_px: float) -> Measurement:
+def measure_plate(image: np.ndarray, design: HoleLayout, mm_per_px: float,
+                  min_match_share: float = MIN_MATCH_SHARE) -> Measurement:
     """Measure a grey transmission scan (H, W) float64 in [0, 1] of a plate made from
     `design` (drawn holes), at a nominal pixel size of mm_per_px. NoHolesError when the scan
-    shows no openings; RegistrationError when it does not fit the design."""
+    shows no openings; RegistrationError when it does not fit the design (fewer than
+    min_match_share of its holes matched, among other checks: register)."""
     fits, light, fit_labels, labels, noise = _openings(image, design, mm_per_px)
     reg = register(fits.centres_px, fits.radii_px, design.centres_mm, design.radii_mm,
-                   mm_per_px)
+                   mm_per_px, min_match_share)
     k = design.count
     state = np.full(k, "blocked", dtype=object)
     centres = np.full((k, 2), np.nan)

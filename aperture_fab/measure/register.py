@@ -156,9 +156,12 @@ def _candidates(scan_mm: np.ndarray, scan_r: np.ndarray, design_mm: np.ndarray,
 
 
 def register(centres_px: np.ndarray, radii_px: np.ndarray, design_mm: np.ndarray,
-             design_radii_mm: np.ndarray, mm_per_px: float) -> Registration:
+             design_radii_mm: np.ndarray, mm_per_px: float,
+             min_match_share: float = MIN_MATCH_SHARE) -> Registration:
     """Register openings (centres (N, 2) px, radii (N,) px) to design holes (centres (K, 2)
-    mm, radii (K,) mm) at a nominal pixel size of mm_per_px (module docstring)."""
+    mm, radii (K,) mm) at a nominal pixel size of mm_per_px (module docstring); at least
+    min_match_share of the design's holes must be matched (a calibration coupon, whose
+    smallest holes may all stay closed, asks for fewer than a plate)."""
     k = len(design_mm)
     if len(centres_px) < 3 or k < 3:
         raise RegistrationError(f"{len(centres_px)} opening(s) found for {k} design holes; "
@@ -184,19 +187,19 @@ def register(centres_px: np.ndarray, radii_px: np.ndarray, design_mm: np.ndarray
         keep_s, keep_d = si[ok], di[ok]
         scale, angle, t = _similarity(design_mm[keep_d] * sign, scan_mm[keep_s])
     return _checked(keep_s, keep_d, scale, angle, t, mirror, tied, scan_mm, scan_r, design_mm,
-                    design_radii_mm, mm_per_px, spacing)
+                    design_radii_mm, mm_per_px, spacing, min_match_share)
 
 
 def _checked(si: np.ndarray, di: np.ndarray, scale: float, angle: float, t: np.ndarray,
              mirror: bool, tied: bool, scan_mm: np.ndarray, scan_r: np.ndarray,
-             design_mm: np.ndarray, design_r: np.ndarray, mm_per_px: float, spacing: float
-             ) -> Registration:
+             design_mm: np.ndarray, design_r: np.ndarray, mm_per_px: float, spacing: float,
+             min_match_share: float) -> Registration:
     """The registration, or RegistrationError saying which check it fails."""
     k = len(design_mm)
-    if si.size < max(3, MIN_MATCH_SHARE * k):
+    if si.size < max(3, min_match_share * k):
         raise RegistrationError(
             f"only {si.size} of the design's {k} holes have an opening where the scan, best "
-            f"placed, puts them (at least {math.ceil(MIN_MATCH_SHARE * k)} needed): this scan "
+            f"placed, puts them (at least {math.ceil(min_match_share * k)} needed): this scan "
             "is not of this design's plate, or its scale is wrong. Check --design (the folder "
             "the plate was made from) and --dpi / --scale-mm-per-px.")
     sign = np.array([-1.0, 1.0]) if mirror else np.array([1.0, 1.0])

@@ -55,7 +55,9 @@ class ScanSettings:
     the solid's. read_noise, shot_noise: noise sigma as shares of full scale (shot noise at
     full scale; it scales as the square root of the signal). dust_open: extra openings (pin
     holes) in the solid; dust_dark: dark specks on the glass over the solid; blocked: holes
-    that did not open. bits, colour: the file. seed: the random draws.
+    that did not open; closed_below_mm: holes whose made radius is under this stay closed (the
+    process's smallest hole: what a calibration coupon measures). bits, colour: the file.
+    seed: the random draws.
     """
 
     dpi: float = 4800.0
@@ -77,6 +79,7 @@ class ScanSettings:
     dust_open: int = 0
     dust_dark: int = 0
     blocked: int = 0
+    closed_below_mm: float = 0.0
     bits: ScanBits = 16
     colour: ScanColour = "grey"
     seed: int = 0
@@ -206,6 +209,7 @@ def simulate_scan(layout: HoleLayout, settings: ScanSettings,
     centres = layout.centres_mm + rng.normal(0, settings.position_sigma_mm, (k, 2))
     blocked = np.zeros(k, dtype=bool)
     blocked[rng.choice(k, size=min(settings.blocked, k), replace=False)] = True
+    blocked |= radii < settings.closed_below_mm
     extra_c, extra_r = _dust(rng, settings.dust_open, layout, radii, centres, mm_per_px)
     dark_c, dark_r = _dust(rng, settings.dust_dark, layout, np.concatenate([radii, extra_r]),
                            np.concatenate([centres, extra_c]), mm_per_px)
