@@ -69,10 +69,11 @@ for the rest. A point the checks `design` runs first refuse, or whose job fails,
 with its error; one whose worker or node went away runs again (--lost-retries), "lost" if it
 never comes back. Ctrl-C or SIGTERM keep every finished point and write the tables. Results:
 OUT/results.csv, results.parquet, pareto.csv and sweep.html (the Pareto plot; click a point for
-its report). Exit status 0; 1 when some points failed or were lost (recorded); 2 when Ray,
-Optuna or pyarrow is missing; 3 for an error in the sweep file (nothing ran); 7 when the
-cluster at --address cannot be reached within --connect-timeout; 130 (Ctrl-C) or 143 (SIGTERM)
-when stopped. Cluster set-up and token authentication: docs/sweep.md.
+its report). Exit status 0; 1 when some points failed or were lost (recorded), or when
+--dry-run finds points the checks refuse; 2 when Ray, Optuna or pyarrow is missing; 3 for an
+error in the sweep file (nothing ran); 7 when the cluster at --address cannot be reached
+within --connect-timeout; 130 (Ctrl-C) or 143 (SIGTERM) when stopped. Cluster set-up and
+token authentication: docs/sweep.md.
 """
 
 
@@ -118,7 +119,8 @@ def add_parser(subparsers: Any) -> None:
                    help="run the points one after another in this process, without Ray")
     p.add_argument("--dry-run", action="store_true",
                    help="check the sweep file and every point (the checks `design` runs "
-                   "first), print the count, memory and estimated CPU time; run nothing")
+                   "first), print the count, memory and estimated CPU time; run nothing "
+                   "(exit status 1 when some point is refused)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
 
@@ -142,19 +144,20 @@ def dry_run(args: argparse.Namespace) -> int:
     """Check every point as the run would (config, then the checks `design` runs first) and
     print the count, the largest memory estimate and the estimated CPU time."""
     from aperture_fab.sweep.estimate import estimate_points
-    from aperture_fab.sweep.run import resolve_point
+    from aperture_fab.sweep.run import Resolver
     from aperture_fab.sweep.spec import check_points, grid_points, load_spec
 
     start = time.perf_counter()
     spec = load_spec(args.sweep_file)
     points = grid_points(spec) if spec.mode == "grid" else []
-    check_points(spec, points, lambda o: resolve_point(spec.preset, spec.base_file, o))
+    resolve = Resolver(spec)
+    check_points(spec, points, resolve)
     shown = points if len(points) <= LIST_ALL_UP_TO else points[:LIST_HEAD]
     for n, point in enumerate(shown, 1):
         print(f"{n:>4}  {point.id}  {point.label()}")
     if len(shown) < len(points):
         print(f"      ... and {len(points) - len(shown)} more")
-    found = estimate_points(spec, points, args.out)
+    found = estimate_points(spec, points, args.out, resolve)
     for point, error in found.refused:
         print(f"refused: {point.id}  {point.label()}: {error}")
     what = f"{len(points)} grid points" if points else (
@@ -166,7 +169,15 @@ def dry_run(args: argparse.Namespace) -> int:
           f"up to {found.peak_bytes / GB:.2f} GB per point; estimated CPU time "
           f"{found.cpu_seconds * count / 3600:.2f} CPU-hours ({found.cpu_seconds:.0f} s per "
           f"point, {found.basis}); checked in {time.perf_counter() - start:.1f} s")
-    return 0  # refused points are recorded as failed when the sweep runs, as the rest go on
+    if found.refused:
+        # A plan with points that cannot be made is not ready: say so, and exit as the run
+        # would (1: some points failed), so a script that checks first does not go on.
+        print(f"{len(found.refused)} of {count} points cannot be made as set (the 'refused:' "
+              "lines above say why and what to change); change the [grid] or [base] values, "
+              "or run the sweep anyway: they are recorded as failed and the rest run.",
+              file=sys.stderr)
+        return EXIT_FAILED_POINTS
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

@@ -14,9 +14,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from aperture_fab.sweep.spec import Point, SweepSpec, make_point
 from aperture_fab.sweep.worker import plain
+
+if TYPE_CHECKING:
+    from aperture_fab.sweep.run import Resolver
 
 __all__ = ["Estimate", "estimate_points", "model_cpu_seconds"]
 
@@ -57,9 +61,13 @@ def _measured(spec: SweepSpec, points: Sequence[Point], out: Path) -> list[float
     return seconds
 
 
-def estimate_points(spec: SweepSpec, points: Sequence[Point], out: Path) -> Estimate:
-    """Run the checks on every point (a search: on [base] alone) and sum up."""
-    from aperture_fab.sweep.run import Preflight, resolve_point
+def estimate_points(spec: SweepSpec, points: Sequence[Point], out: Path,
+                    resolve: Resolver | None = None) -> Estimate:
+    """Run the checks on every point (a search: on [base] alone) and sum up; `resolve`: the
+    sweep's Resolver, when the points were resolved already."""
+    from aperture_fab.sweep.run import Preflight, Resolver
+
+    resolve = resolve or Resolver(spec)
 
     checked = list(points) or [make_point(spec, ())]
     refused: list[tuple[Point, str]] = []
@@ -67,8 +75,7 @@ def estimate_points(spec: SweepSpec, points: Sequence[Point], out: Path) -> Esti
     preflight = Preflight()
     for point in checked:
         try:
-            config, fabrication, _ = resolve_point(spec.preset, spec.base_file,
-                                                   {k: plain(v) for k, v in point.overrides})
+            config, fabrication, _ = resolve({k: plain(v) for k, v in point.overrides})
             peak = max(peak, preflight(config, fabrication, len(spec.targets)))
         except ValueError as err:
             refused.append((point, str(err)))

@@ -65,7 +65,7 @@ from aperture_fab.sweep.worker import (
 )
 
 __all__ = ["Backend", "RunOptions", "Job", "SweepOutcome", "run_sweep", "load_record",
-           "require", "resolve_point", "preflight", "Preflight", "POINT_FILE", "EXTRA"]
+           "require", "resolve_point", "Resolver", "preflight", "Preflight", "POINT_FILE", "EXTRA"]
 
 Backend = Literal["ray", "serial"]
 Status = Literal["ok", "failed", "lost"]
@@ -106,6 +106,28 @@ def resolve_point(preset: str | None, base_file: Mapping[str, Any] | None,
     return config, fabrication, validation
 
 
+class Resolver:
+    """resolve_point for one sweep's settings, each distinct set of overrides resolved once
+    (an error too): a grid's points are resolved by the checks, then read again by the
+    preflight and the estimate, and a one-key grid's points are its values' own checks."""
+
+    def __init__(self, spec: SweepSpec) -> None:
+        self.spec = spec
+        self.done: dict[str, tuple[Any, Any, Any] | Exception] = {}
+
+    def __call__(self, overrides: Mapping[str, Any]) -> tuple[Any, Any, Any]:
+        key = json.dumps(overrides, sort_keys=True, default=str)
+        if key not in self.done:
+            try:
+                self.done[key] = resolve_point(self.spec.preset, self.spec.base_file, overrides)
+            except (ValueError, TypeError, KeyError) as err:
+                self.done[key] = err
+        found = self.done[key]
+        if isinstance(found, Exception):
+            raise found
+        return found
+
+
 class Preflight:
     """The checks `aperture-fab design` runs before its work, on one point's settings.
 
@@ -144,13 +166,33 @@ class Preflight:
                                   display_optimized=settings.display == "optimized"))
 
 
+@contextmanager
+def _one_thread() -> Iterator[None]:
+    """torch and numba on one thread for the checks, then as they were. The checks' renders
+    last milliseconds; their thread pools' hand-offs cost as much again on an idle machine and
+    several times more on a busy one (measured: a tiny scene's light floor 78 ms on 2 threads
+    of 2 loaded cores, 13 ms on one), and the answers are the same."""
+    import numba
+    import torch
+
+    threads, numba_threads = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        numba.set_num_threads(numba_threads)
+
+
 def _rendered_checks(scene: Any, settings: Any, bounds: Any, fabrication: Any) -> str | None:
     """The error of design's light-floor and eye-sees-display checks, or None."""
     from aperture_fab.pipeline.design_job import check_eye_sees_display, check_light_floor
 
     try:
-        check_light_floor(scene, settings, bounds, fabrication)
-        check_eye_sees_display(scene)
+        with _one_thread():
+            check_light_floor(scene, settings, bounds, fabrication)
+            check_eye_sees_display(scene)
     except ValueError as err:
         return str(err)
     return None
@@ -281,19 +323,15 @@ def _signals(log: Callable[[str], None]) -> Iterator[Callable[[], None]]:
             signal.signal(s, handler)
 
 
-def _checker(spec: SweepSpec) -> Callable[[Mapping[str, Any]], None]:
-    def check(overrides: Mapping[str, Any]) -> None:
-        resolve_point(spec.preset, spec.base_file, overrides)
-    return check
-
-
 class _Sweep:
     """The bookkeeping of one run: which points are finished, jobs, records, the tables."""
 
     def __init__(self, spec: SweepSpec, options: RunOptions, progress: Progress,
-                 table: TableLog, log: Callable[[str], None]) -> None:
+                 table: TableLog, log: Callable[[str], None],
+                 resolver: Resolver | None = None) -> None:
         self.spec, self.options, self.progress, self.table, self.log = \
             spec, options, progress, table, log
+        self.resolve = resolver or Resolver(spec)
         self.points: dict[str, Point] = {}
         self.records: dict[str, dict[str, Any]] = {}
         self.ran = self.skipped = 0
@@ -324,8 +362,7 @@ class _Sweep:
                   self.spec.target_digest, self.options.out, self.token,
                   self.options.cpus_per_point, self.options.files)
         try:
-            config, fabrication, _ = resolve_point(self.spec.preset, self.spec.base_file,
-                                                   {k: plain(v) for k, v in point.overrides})
+            config, fabrication, _ = self.resolve({k: plain(v) for k, v in point.overrides})
             self.preflight(config, fabrication, len(self.spec.targets))
         except ValueError as err:
             self.done(job, lost_record(job, "failed", f"refused before running: {err}"), {})
@@ -509,12 +546,13 @@ def run_sweep(spec: SweepSpec, options: RunOptions,
     # Absolute: Ray workers do not share this process's working folder.
     options = dataclasses.replace(options, out=options.out.resolve())
     points = grid_points(spec) if spec.mode == "grid" else []
-    check_points(spec, points, _checker(spec))  # before any job starts (and before Ray)
+    resolver = Resolver(spec)
+    check_points(spec, points, resolver)  # before any job starts (and before Ray)
     (options.out / POINTS_DIR).mkdir(parents=True, exist_ok=True)
     write_atomic(options.out / "sweep.toml", spec.source.read_bytes())
     progress = Progress(len(points) or spec.trials, log, options.terminal)
     table = TableLog(options.out, spec, REFRESH_S)
-    sweep = _Sweep(spec, options, progress, table, log)
+    sweep = _Sweep(spec, options, progress, table, log, resolver)
     write_atomic(options.out / MARKER_FILE, sweep.token)
     stopped_by: int | None = None
     bytes_sent = 0

@@ -429,10 +429,11 @@ def check_points(spec: SweepSpec, points: list[Point], check: Any) -> None:
     base = dict(spec.base)
     attempt(base, "[base]", "change the value in [base] (or in the [sweep] config file).")
     for key, values in spec.grid:
+        listed = ", ".join(map(_text, values))  # once per key: a long list costs n^2 else
         for value in values:
             attempt(base | {key: value}, f"[grid] {key} = {_text(value)}",
                     f"remove or change {_text(value)} in [grid] {key!r} (its values: "
-                    f"{', '.join(map(_text, values))}).")
+                    f"{listed}).")
     for dim in spec.space:
         ends = dim.choices if isinstance(dim, Choice) else (dim.low, dim.high)
         for value in ends:
