@@ -281,6 +281,63 @@ def test_results_csv_grows_as_points_finish(sweep_dir: Path,
     assert header.endswith("attempts,note,error,report")
 
 
+#: A driver that runs GRID serially with the fake design and kills itself (SIGKILL: no
+#: handler, no finally) as the third point starts.
+_KILLED_DRIVER = """
+import os, signal, sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+import aperture_fab.pipeline
+from test_sweep import install_fake_design
+from aperture_fab.sweep.run import RunOptions, run_sweep
+from aperture_fab.sweep.spec import load_spec
+
+class Patch:
+    def setattr(self, owner, name, value):
+        setattr(owner, name, value)
+
+calls = install_fake_design(Patch())
+fake = aperture_fab.pipeline.run_design
+
+def killing(paths, out, config, **kwargs):
+    if len(calls) == 2:
+        os.kill(os.getpid(), signal.SIGKILL)
+    fake(paths, out, config, **kwargs)
+
+aperture_fab.pipeline.run_design = killing
+run_sweep(load_spec(Path(sys.argv[2])), RunOptions(out=Path(sys.argv[3]), backend="serial"),
+          lambda line: None)
+"""
+
+
+def test_a_killed_drivers_rerun_completes_every_table(sweep_dir: Path,
+                                                      fake_design: list[dict[str, Any]]
+                                                      ) -> None:
+    """SIGKILL as the third of 6 points starts: results.csv holds the 2 finished (appended as
+    they finished; results.parquet is rewritten only every REFRESH_S and at the end, so it is
+    not there yet). The same command again runs only the 4 others and writes every table,
+    Parquet too, from the points' point.json files: all 6 rows, the first 2 not redone."""
+    tiny = TINY_BASE.replace('"plate.pitch_mm" = 0.25', '"plate.pitch_mm" = 0.8')
+    path = write_sweep(sweep_dir, GRID.split("[base]")[0] + tiny + '"plate.thickness_mm" = 0.3\n')
+    out = sweep_dir / "out"
+    killed = subprocess.run([sys.executable, "-c", _KILLED_DRIVER, str(Path(__file__).parent),
+                             str(path), str(out)], capture_output=True, text=True, timeout=120)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert not (out / "results.parquet").exists()
+    outcome = run_sweep(load_spec(path), RunOptions(out=out, backend="serial"), lambda line: None)
+    assert outcome.skipped == 2 and len(fake_design) == 4  # nothing finished is redone
+    pq = pytest.importorskip("pyarrow.parquet")
+    table = pq.read_table(out / "results.parquet").to_pylist()
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert [r["id"] for r in table] == [r["id"] for r in rows]
+    assert [r["status"] for r in table] == ["ok"] * 4 + ["failed"] * 2
+    (out / "results.parquet").unlink()  # nothing left to run: the tables are still rebuilt
+    run_sweep(load_spec(path), RunOptions(out=out, backend="serial"), lambda line: None)
+    assert len(fake_design) == 4 and len(pq.read_table(out / "results.parquet")) == 6
+
+
 def test_sigterm_writes_the_tables(sweep_dir: Path, fake_design: list[dict[str, Any]],
                                    monkeypatch: pytest.MonkeyPatch,
                                    capsys: pytest.CaptureFixture[str]) -> None:
