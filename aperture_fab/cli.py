@@ -767,14 +767,67 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _display_arguments(args: argparse.Namespace) -> None:
+    """display's usage, checked as argparse would (exit 2): PART, one TARGET, --eye, --pupil
+    and --out, or --refit with TARGETs and none of PART's flags."""
+    parser: argparse.ArgumentParser = args.display_parser
+    if args.refit is not None:
+        given = [flag for flag, value in (("--eye", args.eye), ("--pupil", args.pupil),
+                                          ("--out", args.out), ("--focus", args.focus),
+                                          ("--config", args.config), ("--process", args.process))
+                 if value is not None]
+        if given:
+            parser.error(f"--refit re-fits the untracked display content and writes into "
+                         f"MEASURED_FOLDER; drop {', '.join(given)}. For a tracked frame of the "
+                         "measured plate: aperture-fab display MEASURED_FOLDER/holes.csv TARGET "
+                         "--eye X,Y --pupil MM --out FRAME.png")
+        if args.part is None:
+            parser.error("the following arguments are required: TARGET (with --refit: the "
+                         "design's targets)")
+        return
+    missing = [name for name, value in (("PART", args.part), ("TARGET", args.target or None),
+                                        ("--eye", args.eye), ("--pupil", args.pupil),
+                                        ("--out", args.out)) if value is None]
+    if missing:
+        parser.error(f"the following arguments are required: {', '.join(missing)}")
+    if len(args.target) > 1:
+        parser.error(f"unrecognized arguments: {' '.join(map(str, args.target[1:]))} (display "
+                     "takes one TARGET; several only with --refit)")
+
+
+def _display_refit(args: argparse.Namespace) -> int:
+    """display --refit: the display content re-fitted to the measured plate (issue 17)."""
+    from aperture_fab.measure.job import run_refit
+
+    targets = [args.part, *args.target]
+    result = run_refit(args.refit, targets, target_options=_target_options(args),
+                       iterations=args.iterations, progress=args.output.progress,
+                       command=args.command_line)
+    r = result.refit
+    output: Output = args.output
+    output.timings(result.timings_s)
+    recovered = ("no tolerance loss to recover (the made plate scores at least the nominal)"
+                 if r.recovered is None else f"the refit recovers {r.recovered:.0%} of the "
+                 f"{r.loss_db:.2f} dB tolerance loss ({r.left_db:.2f} dB left against the "
+                 f"nominal plate re-fitted alike, {r.nominal_refit_db:.2f} dB)")
+    output.result(f"wrote {result.folder}/refit.json and {len(result.paths)} refit display "
+                  f"image(s): PSNR after gain {r.nominal_db:.2f} dB nominal, {r.made_db:.2f} dB "
+                  f"made (design's content), {r.refit_db:.2f} dB made (refit, {r.iterations} "
+                  f"iterations): {recovered}")
+    return EXIT_OK
+
+
 def _cmd_display(args: argparse.Namespace) -> int:
     from aperture_fab.pipeline.render_job import run_display
 
+    _display_arguments(args)
+    if args.refit is not None:
+        return _display_refit(args)
     focus: Any = None
     if args.focus is not None:
         focus = "infinity" if args.focus == "infinity" else _focus_mm(args.focus)
     frame = run_display(
-        args.part, args.target, eye_mm=_pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
+        args.part, args.target[0], eye_mm=_pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
         target_options=_target_options(args),
         focus_mm=focus, iterations=args.iterations, config_path=args.config,
         target_index=args.target_index, process=args.process, out=args.out)
@@ -884,13 +937,16 @@ examples:
   aperture-fab display outputs/x/design.npz img.png --eye 1.5,0 --pupil 4 --out frame.png
   aperture-fab display outputs/x/plate.stl img.png --eye 0,-1 --pupil 6 --focus 500 \\
       --iterations 10 --config outputs/x/design.toml --out frame.png
+  aperture-fab display --refit outputs/x_made img.png
 
 Tracked display: the device knows the pupil's position and size and shows content solved for
 that eye state, starting from the design's (untracked) content; the plate stays as made (the
 process's radius bias applied). The solver is MLEM (Richardson-Lucy); it prints the PSNR after
 gain of the view with the untracked and the tracked content, and the solve time (the first
 solve of a process also loads the CPU kernels; per-frame latency: benchmarks/bench_display.py).
-See docs/tracking.md.
+See docs/tracking.md. --refit MEASURED_FOLDER (what `measure` wrote) re-fits the untracked
+content to the plate as made and prints how much of the tolerance loss (nominal as built
+against the made plate with the design's content) that recovers; docs/measure.md.
 """
 
 
@@ -1017,15 +1073,21 @@ def build_parser() -> argparse.ArgumentParser:
                        "fixed, and write it as an sRGB PNG at the display's pixel count.",
                        epilog=DISPLAY_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("part", type=Path, metavar="PART",
-                   help="design.npz, holes.csv or an STL (.stl)")
-    p.add_argument("target", type=Path, metavar="TARGET",
-                   help="the target image the eye should see")
-    p.add_argument("--eye", required=True, metavar="X,Y",
+    # Optional here, required below (_display_arguments): --refit takes neither PART nor --eye.
+    p.add_argument("part", type=Path, nargs="?", metavar="PART",
+                   help="design.npz, holes.csv or an STL (.stl); with --refit: a TARGET")
+    p.add_argument("target", type=Path, nargs="*", metavar="TARGET",
+                   help="the target image the eye should see (with --refit: the design's "
+                   "targets, in its order)")
+    p.add_argument("--refit", type=Path, metavar="MEASURED_FOLDER",
+                   help="re-fit the display content to the plate as measured (the folder "
+                   "`aperture-fab measure` wrote) and say how much of the tolerance loss it "
+                   "recovers; writes refit.json and refit_display_<target>.png there")
+    p.add_argument("--eye", metavar="X,Y",
                    help="pupil centre (x, y) in mm in the scene's frame (the config's nominal "
-                   "eye position is usually 0,0)")
-    p.add_argument("--pupil", required=True, type=float, metavar="MM",
-                   help="pupil diameter in mm")
+                   "eye position is usually 0,0); required without --refit")
+    p.add_argument("--pupil", type=float, metavar="MM",
+                   help="pupil diameter in mm; required without --refit")
     p.add_argument("--focus", metavar="MM", help="eye focus distance in mm, or 'infinity' "
                    "(default: the config's)")
     p.add_argument("--iterations", type=int, default=None, metavar="N",
@@ -1035,10 +1097,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target-index", type=int, default=0, metavar="N",
                    help="which of the design's display contents to start from (default 0)")
     p.add_argument("--process", help="fabrication process (default: the config's, else resin)")
-    p.add_argument("--out", type=Path, required=True, metavar="FRAME.png",
-                   help="PNG to write")
+    p.add_argument("--out", type=Path, metavar="FRAME.png",
+                   help="PNG to write; required without --refit")
     _add_target_flags(p)
-    p.set_defaults(func=_cmd_display)
+    p.set_defaults(func=_cmd_display, display_parser=p)
 
     p = sub.add_parser("assembly", help="the assembly sheet (HTML) of a design folder",
                        description="Write the printable assembly sheet of a design: the plate "

@@ -71,7 +71,8 @@ _BENCH_TESTS = "tests/test_benchmarks_run.py runs it at its quickest settings"
 _SYNOPSIS = "a usage synopsis ([optional flags], a|b choices), not a command to run"
 _MEASURED = ("needs outputs/x_made, which the measure command before it writes (each command "
              "runs in a fresh workspace); tests/test_measure_judge.py measures a simulated "
-             "scan and runs validate, render and display on the folder")
+             "scan and runs validate, render and display on the folder; "
+             "tests/test_measure_refit.py runs display --refit")
 _CLUSTER = "needs a Ray cluster (tests/test_sweep.py runs sweeps on a local Ray instance)"
 
 #: Commands that are not run, by their text (whitespace collapsed, comment dropped), with why.
@@ -96,6 +97,7 @@ EXAMPLES: dict[str, str] = {
     "aperture-fab render outputs/x_made/holes.csv img.png --out view_made.png": _MEASURED,
     "aperture-fab display outputs/x_made/holes.csv img.png --eye 0,0 --pupil 4 --out "
     "frame_made.png": _MEASURED,
+    "aperture-fab display --refit outputs/x_made img.png": _MEASURED,
     # docs/tracking.md
     ".venv/bin/python benchmarks/bench_display.py --repeats 7":
         "about ten minutes at 7 repeats; " + _BENCH_TESTS,

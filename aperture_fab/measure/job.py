@@ -21,8 +21,9 @@ from aperture_fab.fabrication.coupon import Coupon, calibration_coupon, coupon_p
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.part import Part, fabrication_settings
 from aperture_fab.fabrication.process import MAX_OPTICAL_DENSITY
-from aperture_fab.io.files import output_folder, write_atomic
+from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import holes_csv
+from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import check_folder, publish, staging
 from aperture_fab.measure.coupon import (
     COUPON_MIN_MATCH_SHARE,
@@ -32,19 +33,25 @@ from aperture_fab.measure.coupon import (
 )
 from aperture_fab.measure.folder import AS_MADE_PROCESS, derived_config
 from aperture_fab.measure.measure import Measurement, NoHolesError, measure_plate
+from aperture_fab.measure.refit import Refit, refit_display
 from aperture_fab.measure.register import MIN_MATCH_SHARE, RegistrationError
 from aperture_fab.measure.report import measured_json, measured_layout, measured_page
 from aperture_fab.measure.scan import ScanEncoding, decode_scan
+from aperture_fab.pipeline.design_job import FIT_SHARE, MIN_FIT_ITERATIONS
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,
     DESIGN_NAME,
     MEASURED_NAME,
+    check_design,
     load_part,
+    measured_scan,
     read_config,
+    read_design,
 )
+from aperture_fab.validation.validate import layout_fractions
 
-__all__ = ["HOLES_NAME", "PROCESS_NAME", "CouponResult", "MeasureResult", "read_design_part",
-           "run_measure", "run_measure_coupon"]
+__all__ = ["HOLES_NAME", "PROCESS_NAME", "REFIT_NAME", "CouponResult", "MeasureResult",
+           "RefitResult", "read_design_part", "run_measure", "run_measure_coupon", "run_refit"]
 
 HOLES_NAME = "holes.csv"
 JSON_NAME = MEASURED_NAME
@@ -53,6 +60,12 @@ PAGE_NAME = "measured.html"
 #: and the coupon's holes as made.
 PROCESS_NAME = "process.toml"
 COUPON_HOLES_NAME = "coupon_holes.csv"
+#: What `display --refit` adds to a measured folder's set: the figures, and the re-fitted
+#: display content per target (refit_display_<target>.png).
+REFIT_NAME = "refit.json"
+REFIT_DISPLAY = "refit_display_{}.png"
+#: Most iterations a re-fit takes (each a forward and a backward pass).
+MAX_REFIT_ITERATIONS = 2000
 #: The command a manifest names when the Python API, not the command line, ran the job.
 MEASURE_COMMAND = ("python", "-c", "aperture_fab.measure.job.run_measure(...)")
 
@@ -247,3 +260,87 @@ def run_measure(scan: Path, design: Path, out: Path, mm_per_px: float,
         publish(staged, folder, command if command is not None else MEASURE_COMMAND)
     timings["write_s"] = time.perf_counter() - start
     return MeasureResult(folder, measurement, tuple(summary["notes"]), timings)
+
+
+@dataclass(frozen=True)
+class RefitResult:
+    """What `run_refit` did: folder (the measured folder), names (T,) target names, refit (the
+    content and its figures: aperture_fab.measure.refit.Refit), paths (the PNGs written),
+    timings_s (seconds per stage)."""
+
+    folder: Path
+    names: tuple[str, ...]
+    refit: Refit
+    paths: tuple[Path, ...]
+    timings_s: dict[str, float]
+
+
+def run_refit(measured: Path, targets: Sequence[Path], *,
+              target_options: TargetOptions | None = None, iterations: int | None = None,
+              progress: bool = False, command: Sequence[str] | None = None) -> RefitResult:
+    """`display --refit`: re-fit the display content to the plate as measured in the folder
+    `measured` (what `measure` wrote), for the design's targets, and say how much of the
+    tolerance loss that recovers (aperture_fab.measure.refit). Adds refit.json and
+    refit_display_<target>.png to the folder's set. iterations: the fit's (default as
+    `validate` re-fits: max(MIN_FIT_ITERATIONS, optimizer.iterations // FIT_SHARE))."""
+    start = time.perf_counter()
+    config_path = measured / CONFIG_NAME
+    scan = measured_scan(measured)
+    if not measured.is_dir() or scan is None or not config_path.is_file():
+        raise ValueError(f"--refit {measured} is not a folder `aperture-fab measure` wrote (no "
+                         f"{JSON_NAME} and {CONFIG_NAME}); measure the plate's scan first: "
+                         "aperture-fab measure SCAN --design FOLDER --out DIR.")
+    summary = json.loads((measured / JSON_NAME).read_text(encoding="utf-8"))
+    design = Path(str(summary.get("design", "")))
+    if not (design / DESIGN_NAME).is_file():
+        raise ValueError(f"--refit {measured}: the design it was measured against, {design} "
+                         f"(its {JSON_NAME}), has no {DESIGN_NAME}; the nominal plate and its "
+                         "display content come from there. Put the design folder back, or "
+                         "measure again with --design where it is now.")
+    config = read_config(config_path)
+    fabrication = fabrication_settings(config.extra, {})
+    made_part = load_part(measured / HOLES_NAME, "holes", config, fabrication, config_path)
+    design_config = read_config(design / CONFIG_NAME)
+    design_process = fabrication_settings(design_config.extra, {}).process
+    nominal_part = read_design_part(design)
+    saved = read_design(design / DESIGN_NAME)
+    check_design(saved, config, config_path)
+    shipped = saved.built_displays if saved.built_displays is not None else saved.displays
+    images, names = load_targets(targets, config.scene.display.pixels, target_options)
+    if len(images) != len(shipped):
+        raise ValueError(f"{saved.path} was designed for {len(shipped)} target(s) "
+                         f"({', '.join(saved.names)}) but {len(images)} were given; give "
+                         f"{len(shipped)} target(s) in the design's order.")
+    view_targets, _ = prepare_targets(images, config.scene.eye.view_pixels,
+                                      config.scene.display.pixels, shipped.shape[1],
+                                      names=[str(t) for t in targets])
+    settings = config.optimizer
+    if iterations is None:
+        iterations = max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE)
+    if not (isinstance(iterations, int) and 1 <= iterations <= MAX_REFIT_ITERATIONS):
+        raise ValueError(f"--iterations {iterations!r} is out of range for --refit; allowed: a "
+                         f"whole number from 1 to {MAX_REFIT_ITERATIONS} (the fit's; default "
+                         f"{max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE)}).")
+    timings = {"load_s": time.perf_counter() - start}
+    start = time.perf_counter()
+    refit = refit_display(config.scene, view_targets,
+                          layout_fractions(nominal_part.layout, design_process.radius_bias_mm),
+                          layout_fractions(made_part.layout), shipped, settings, iterations,
+                          progress)
+    timings["refit_s"] = time.perf_counter() - start
+    figures = {"scan": scan, "design": str(design), "targets": list(names),
+               "iterations": iterations, "nominal_psnr_db": refit.nominal_db,
+               "made_psnr_db": refit.made_db, "refit_psnr_db": refit.refit_db,
+               "nominal_refit_psnr_db": refit.nominal_refit_db,
+               "tolerance_loss_db": refit.loss_db, "loss_left_db": refit.left_db,
+               "recovered_share": refit.recovered,
+               "displays": [REFIT_DISPLAY.format(n) for n in names]}
+    check_folder(measured)
+    with staging(measured) as staged:
+        write_atomic(staged / REFIT_NAME, json.dumps(figures, indent=1) + "\n")
+        for name, content in zip(names, refit.displays, strict=True):
+            write_atomic(staged / REFIT_DISPLAY.format(name), encode_png(content))
+        publish(staged, measured, command if command is not None else MEASURE_COMMAND,
+                add=True)
+    paths = tuple(measured / REFIT_DISPLAY.format(n) for n in names)
+    return RefitResult(measured, tuple(names), refit, paths, timings)

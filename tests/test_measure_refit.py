@@ -1,0 +1,81 @@
+"""`aperture-fab display --refit MEASURED_FOLDER` (issue 17, item 3): the display content
+re-fitted to the measured plate recovers at least half of the tolerance loss (nominal as built
+against the made copy with the design's content) on simulated made copies."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import design_tiny
+from test_measure_judge import write_scan
+
+from aperture_fab.cli import EXIT_OK, EXIT_USAGE, main
+from aperture_fab.io.manifest import check_folder
+from aperture_fab.measure.job import read_design_part
+from aperture_fab.measure.simulate import ScanSettings, simulate_scan
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+#: The tiny design optimized far enough that its holes matter (100 iterations: 20.3 dB; the
+#: 8-iteration `designed` fixture's 10 dB view barely depends on its holes, and a made copy
+#: scores as often above it as below).
+ITERATIONS = "100"
+#: Made copies of its photomask plate: radius sigma 3 um (the process's 2 um, worse), position
+#: sigma 5 um (the process's), no bias (the process's, compensated in the drawing), three holes
+#: blocked; scanned at 4800 dpi, turned 7 degrees (examples/simulate_scan.py's copy with
+#: --blocked 3 --radius-sigma-um 3 --dust 0).
+COPY = dict(dpi=4800, rotation_deg=7.0, radius_bias_mm=0.0, radius_sigma_mm=0.003,
+            position_sigma_mm=0.005, blocked=3)
+#: Copies that lose against the design (seed 14's scores above it: nothing to recover).
+SEEDS = (11, 12, 13)
+#: The issue's goal: at least half of the tolerance loss recovered.
+GOAL_SHARE = 0.5
+
+
+@pytest.fixture(scope="module")
+def converged(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("converged")
+    assert design_tiny(folder, "--iterations", ITERATIONS, "--out", str(folder / "plate.stl"),
+                       "--no-validate", "--quiet") == 0
+    return folder
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_refit_recovers_at_least_half_the_tolerance_loss(
+        converged: Path, tmp_path: Path, seed: int, capsys: pytest.CaptureFixture[str]) -> None:
+    designed = converged
+    part = read_design_part(designed)
+    scan = simulate_scan(part.layout, ScanSettings(**COPY, seed=seed),  # type: ignore[arg-type]
+                         part.corner_cut_mm)
+    path = write_scan(tmp_path / "scan.png", scan)
+    made = tmp_path / "made"
+    assert main(["measure", str(path), "--design", str(designed), "--out", str(made),
+                 "--quiet"]) == EXIT_OK
+    assert main(["display", "--refit", str(made), str(designed / "marker.png")]) == EXIT_OK
+    assert "tolerance loss" in capsys.readouterr().out
+    figures = json.loads((made / "refit.json").read_text())
+    print(f"seed {seed}: nominal {figures['nominal_psnr_db']:.2f} dB, made "
+          f"{figures['made_psnr_db']:.2f} dB, refit {figures['refit_psnr_db']:.2f} dB, "
+          f"nominal refit {figures['nominal_refit_psnr_db']:.2f} dB, "
+          f"recovered {figures['recovered_share']}")
+    assert figures["tolerance_loss_db"] > 0  # these copies lose against the design
+    assert figures["recovered_share"] >= GOAL_SHARE
+    assert (made / "refit_display_marker.png").is_file()
+    check_folder(made)  # the figures joined the measured set
+
+
+def test_display_usage_with_and_without_refit(designed: Path, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["display", str(designed / "design.npz"), str(designed / "marker.png"),
+              "--pupil", "4", "--out", str(tmp_path / "f.png")])
+    assert exit_.value.code == EXIT_USAGE
+    assert "the following arguments are required: --eye" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["display", "--refit", str(tmp_path), str(designed / "marker.png"), "--eye",
+              "0,0"])
+    assert "drop --eye" in capsys.readouterr().err
+    assert main(["display", "--refit", str(tmp_path), str(designed / "marker.png")]) != EXIT_OK
+    assert "measure the plate's scan first" in capsys.readouterr().err
