@@ -419,6 +419,22 @@ def test_dry_run_of_many_points_is_quick(sweep_dir: Path,
     assert seconds < 30  # the goal is 10 s; shared CI machines are slower
 
 
+def test_cpu_model_matches_its_calibration() -> None:
+    """The one-core model against design jobs measured for it (docs/sweep.md): a tiny job
+    (16 x 16 view, 10 iterations: 6.6 CPU s), a small one (64 x 64, 60 iterations: 43 s), and
+    the default near-eye job at about 4.5 minutes (the README's "about five")."""
+    from aperture_fab.config import resolve
+    from aperture_fab.sweep.estimate import model_cpu_seconds
+
+    tiny = {"display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
+            "plate.cells": [16, 16], "plate.pitch_mm": 0.25, "eye.eyebox_mm": 2.0}
+    for view, iterations, measured in (([16, 16], 10, 6.63), ([64, 64], 60, 42.78)):
+        config = resolve("near-eye", None, tiny | {"eye.view_pixels": view,
+                                                   "optimizer.iterations": iterations})
+        assert model_cpu_seconds(config, 1) == pytest.approx(measured, rel=0.11)
+    assert 240 < model_cpu_seconds(resolve("near-eye", None, {}), 1) < 300
+
+
 def test_light_floor_screen_is_a_lower_bound(sweep_dir: Path) -> None:
     """check_light_floor's sparse plates pass no more light than the brightest plate: a view
     is a sum of one term per open hole, so the stride x stride phases of a sparse plate add

@@ -3,10 +3,15 @@
 and the CPU time.
 
 The CPU time comes from the sweep's own finished points in --out when there are some (their
-mean CPU seconds: the best guide there is); otherwise from a rough model, a fixed cost per job
-(imports, validation, export) plus a cost per traced view pixel, eye state and iteration,
-calibrated on this project's tiny designs on one core. It is a planning figure: a factor of
-two either way is expected.
+mean CPU seconds: the best guide there is); otherwise from a model of one core: a fixed cost
+per job, a cost per view pixel (evaluation and validation render every pixel whatever the
+iterations) and a cost per view pixel x eye state x iteration x target (the optimizer).
+Calibrated by least squares on 7 design jobs on one thread (2 shared, loaded cores): near-eye
+with 16 x 16 cells, a 32 x 32 display, 16/32/64 px square views x 10/60 iterations, and
+tolerance_samples 2/16 (which changed the time by less than the noise); each job's CPU time is
+within 11 % of the model (the old one, 4 s + 2.5e-6 s per unit of work, was 39-82 % low). It
+extrapolates to about 4.5 min for the default near-eye job (128 x 128, 150 iterations), as
+the README's "about five minutes"; expect +-30 % on other machines and settings.
 """
 
 from __future__ import annotations
@@ -24,10 +29,12 @@ if TYPE_CHECKING:
 
 __all__ = ["Estimate", "estimate_points", "model_cpu_seconds"]
 
-#: The model: CPU seconds of a design job with no optimizer work (validation, export) ...
-SETUP_CPU_S = 4.0
+#: The model: CPU seconds of a design job with no view and no iterations (imports, export) ...
+SETUP_CPU_S = 5.25
+#: ... plus this per view pixel (evaluation, validation: every pixel, whatever the iterations)
+CPU_S_PER_VIEW_PIXEL = 4.5e-3
 #: ... plus this per view pixel x eye state x target x iteration (optimizer and fitting).
-CPU_S_PER_WORK = 2.5e-6
+CPU_S_PER_WORK = 9.6e-6
 
 
 @dataclass(frozen=True)
@@ -47,7 +54,7 @@ def model_cpu_seconds(config: object, targets: int) -> float:
     width, height = scene.eye.view_pixels
     states = 1 if scene.eye.eyebox_mm == 0 else max(1, settings.eye_states)
     work = settings.iterations * width * height * states * targets
-    return SETUP_CPU_S + CPU_S_PER_WORK * work
+    return SETUP_CPU_S + CPU_S_PER_VIEW_PIXEL * width * height + CPU_S_PER_WORK * work
 
 
 def _measured(spec: SweepSpec, points: Sequence[Point], out: Path) -> list[float]:
@@ -86,5 +93,5 @@ def estimate_points(spec: SweepSpec, points: Sequence[Point], out: Path,
         return Estimate(tuple(refused), peak, sum(measured) / len(measured),
                         f"the mean of the {len(measured)} point(s) finished in {out}")
     mean = sum(model) / len(model) if model else 0.0
-    return Estimate(tuple(refused), peak, mean, "a rough model of one core; the finished "
+    return Estimate(tuple(refused), peak, mean, "a model of one core, +-30 %; the finished "
                     "points' own times replace it on the next --dry-run")
