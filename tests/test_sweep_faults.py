@@ -406,7 +406,7 @@ def test_dry_run_of_many_points_is_quick(sweep_dir: Path,
                                          capsys: pytest.CaptureFixture[str]) -> None:
     """1000 tiny points, each its own scene (1000 gaps), each resolved and checked: the rule
     checks and both rendered checks (the light floor, that the eye sees the display) run on
-    every one (measured 8.8 s from the command line on 2 loaded cores, imports included)."""
+    every one (from the command line, imports included: 9.7 s, median of 3 on 2 shared cores)."""
     gaps = ", ".join(f"{8 + 0.01 * n:.2f}" for n in range(1000))
     path = write_sweep(sweep_dir, "[sweep]\ntargets = ['marker.png']\npreset = 'near-eye'\n"
                        f"[grid]\n'plate.gap_mm' = [{gaps}]\n" + TINY_BASE
