@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import errno
 import re
+import signal
 import sys
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,13 +27,15 @@ EXIT_REPORT_FAIL = 5  # the report says FAIL: do not make the part as it is
 EXIT_REPORT_WARN = 6  # with --strict only: the report says WARN
 EXIT_NO_CLUSTER = 7  # `sweep`: the Ray cluster at --address could not be reached
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM: stopped like Ctrl-C (a job scheduler's or `kill`'s stop)
 
 EXIT_CODES_HELP = f"""\
 exit status:
   {EXIT_OK}    success; for `design` and `validate`: the part's report says PASS, or WARN
        without --strict
   {EXIT_FAILED}    the tool refused the job: the process cannot make the plate (--force writes it
-       anyway), or the optimization diverged; for `sweep`, some points failed
+       anyway), the optimization diverged, or the job needs more memory than the machine has;
+       for `sweep`, some points failed
   {EXIT_USAGE}    usage error: an unknown command or flag, a flag's value of the wrong type or
        empty, or a package the command needs is not installed (e.g. the step extra for STEP)
   {EXIT_BAD_INPUT}    bad input: a missing or wrong file, a value out of range
@@ -43,6 +47,7 @@ exit status:
   {EXIT_NO_CLUSTER}    `sweep`: the Ray cluster at --address could not be reached within
        --connect-timeout (the message names the address and the fix)
   {EXIT_INTERRUPTED}  interrupted (Ctrl-C); `design` saves a checkpoint first (--resume goes on)
+  {EXIT_TERMINATED}  stopped by SIGTERM (`kill`, a job scheduler), handled like Ctrl-C
 
 -q/--quiet prints only errors and the final one-line result, which is also the last line
 without it; for `design` and `validate` it starts with the report's verdict (PASS, WARN, FAIL;
@@ -616,6 +621,24 @@ class Judgement:
         return f"{text}; {topic}: {reason}"
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it stops a command the way Ctrl-C does: a
+    design saves its checkpoint, every file written so far is whole."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
+def _how_stopped(err: BaseException) -> tuple[str, int]:
+    """How a command was stopped ("Ctrl-C" or "SIGTERM") and its exit status; `err` is the
+    KeyboardInterrupt or an exception raised while handling one (the design's Interrupted)."""
+    stop = err if isinstance(err, KeyboardInterrupt) else err.__context__
+    if isinstance(stop, Terminated):
+        return "SIGTERM", EXIT_TERMINATED
+    return "Ctrl-C", EXIT_INTERRUPTED
+
+
 def _cmd_design(args: argparse.Namespace) -> int:
     from aperture_fab.io.files import output_folder
     from aperture_fab.optimize.optimizer import Interrupted
@@ -644,9 +667,10 @@ def _cmd_design(args: argparse.Namespace) -> int:
                             command=args.command_line, stage=output.stage,
                             replace_validated=bool(args.force))
     except Interrupted as stop:
-        output.interrupted(f"at iteration {stop.state['iteration']} (Ctrl-C); checkpoint saved in "
+        how, code = _how_stopped(stop)
+        output.interrupted(f"at iteration {stop.state['iteration']} ({how}); checkpoint saved in "
                            f"{folder}. Continue with the same command and --resume.")
-        return EXIT_INTERRUPTED
+        return code
     wrote = (f"wrote {folder}/ ({len(result.design.loss_history)} iterations, "
              f"stopped: {result.design.stopped})")
     output.timings(result.timings_s)
@@ -1250,16 +1274,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                     verbose=bool(getattr(args, "verbose", False)),
                     terminal=sys.stderr.isatty())
     args.output = output
+    main_thread = threading.current_thread() is threading.main_thread()
+    before = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(output, warnings.showwarning)
             return int(args.func(args))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         output.traceback()
-        output.interrupted(f"(Ctrl-C) during `{args.command}`; every file already written is "
+        how, code = _how_stopped(err)
+        output.interrupted(f"({how}) during `{args.command}`; every file already written is "
                            "whole (each is written completely or not at all). Run the command "
                            "again to finish it.")
-        return EXIT_INTERRUPTED
+        return code
+    except MemoryError:
+        output.traceback()
+        output.error(f"`{args.command}` ran out of memory: the job is larger than this machine "
+                     "can hold. Make it smaller (fewer view_pixels, eye states, tolerance or "
+                     "mesh samples, a smaller display or plate) or run it on a larger machine.")
+        return EXIT_FAILED
     except ImportError as err:
         if not _missing_package(err):
             raise  # the tool's own code is broken: its traceback is the report
@@ -1272,6 +1305,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         output.error(_os_error_message(err, args) if isinstance(err, OSError)
                      and code == EXIT_CANNOT_WRITE else str(err))
         return code
+    finally:
+        if main_thread:  # None: the handler was not set from Python, i.e. the default
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
 
 
 if __name__ == "__main__":

@@ -47,6 +47,7 @@ from aperture_fab.cli import (
     EXIT_OK,
     EXIT_REPORT_FAIL,
     EXIT_REPORT_WARN,
+    EXIT_TERMINATED,
     EXIT_USAGE,
     main,
 )
@@ -275,9 +276,29 @@ def test_ctrl_c_in_export_exits_130(folder: Path, monkeypatch: pytest.MonkeyPatc
     assert "interrupted (Ctrl-C) during `export`" in err and "Traceback" not in err
 
 
+def test_out_of_memory_is_a_refusal_not_a_traceback(folder: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    import aperture_fab.pipeline.design_job as design_job
+
+    def too_large(*args: object, **kwargs: object) -> None:
+        raise MemoryError
+
+    monkeypatch.setattr(design_job, "write_part", too_large)
+    assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "`export` ran out of memory" in err and "Traceback" not in err
+
+
 @pytest.mark.slow
-def test_ctrl_c_during_validation_exits_130(folder: Path) -> None:
-    """A real SIGINT to a running `validate`, sent once it says validation has started."""
+@pytest.mark.parametrize(("signum", "how", "codes"), [
+    # 130, or killed by SIGINT (-2), which a shell reports as 130 too: CPython re-sends SIGINT
+    # to itself at exit when the Ctrl-C landed inside exec'd code (e.g. a module import).
+    (signal.SIGINT, "Ctrl-C", (EXIT_INTERRUPTED, -signal.SIGINT)),
+    (signal.SIGTERM, "SIGTERM", (EXIT_TERMINATED,)),
+], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_during_validation_stops_it_cleanly(folder: Path, signum: signal.Signals,
+                                                     how: str, codes: tuple[int, ...]) -> None:
+    """A real signal to a running `validate`, sent once it says validation has started."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     child = subprocess.Popen(
         [sys.executable, "-m", "aperture_fab.cli", "validate", str(folder / "holes.csv"),
@@ -290,13 +311,11 @@ def test_ctrl_c_during_validation_exits_130(folder: Path) -> None:
         if "validate:" in line:  # a stage line: stderr is not a terminal
             break
     time.sleep(0.5)
-    child.send_signal(signal.SIGINT)
+    child.send_signal(signum)
     _, rest = child.communicate(timeout=120)
     err = "".join(lines) + rest
-    # 130, or killed by SIGINT (-2), which a shell reports as 130 too: CPython re-sends SIGINT
-    # to itself at exit when the Ctrl-C landed inside exec'd code (e.g. a module import).
-    assert child.returncode in (EXIT_INTERRUPTED, -signal.SIGINT), err
-    assert "interrupted (Ctrl-C) during `validate`" in err and "Traceback" not in err
+    assert child.returncode in codes, err
+    assert f"interrupted ({how}) during `validate`" in err and "Traceback" not in err
 
 
 # -- honest reports --------------------------------------------------------------------------
@@ -2113,8 +2132,8 @@ def _when_checkpointed(child: subprocess.Popen[str], out: Path) -> None:
 def test_a_signal_while_designing_leaves_the_folder_whole(folder: Path,
                                                           signum: signal.Signals) -> None:
     """A design replacing the one in `folder` (--force) gets the signal while optimizing: the
-    folder is still the old set, whole; SIGINT says so and saves a checkpoint that --resume
-    finishes; after SIGTERM or SIGKILL the next run cleans up and publishes its set."""
+    folder is still the old set, whole; SIGINT and SIGTERM say so and save a checkpoint that
+    --resume finishes; after SIGKILL the next run cleans up and publishes its set."""
     from aperture_fab.io.manifest import check_folder
 
     old = json.loads((folder / "manifest.json").read_text())["files"]
@@ -2128,8 +2147,9 @@ def test_a_signal_while_designing_leaves_the_folder_whole(folder: Path,
     assert "Traceback" not in err, err
     check_folder(folder)
     assert json.loads((folder / "manifest.json").read_text())["files"] == old
-    if signum == signal.SIGINT:
-        assert child.returncode in (EXIT_INTERRUPTED, -signal.SIGINT), err
+    if signum in (signal.SIGINT, signal.SIGTERM):
+        assert child.returncode in ((EXIT_INTERRUPTED, -signal.SIGINT) if signum == signal.SIGINT
+                                    else (EXIT_TERMINATED,)), err
         assert "checkpoint saved" in err and "--resume" in err, err
         assert run(["design", "{d}/marker.png", "--config", "{d}/sig.toml", "--out", "{d}",
                     "--no-validate", "-q", "--iterations", str(SIGNAL_ITERATIONS), "--force",
