@@ -526,7 +526,7 @@ def test_real_sweep_on_local_ray(sweep_dir: Path, capsys: pytest.CaptureFixture[
     assert all(f"points/{r['id']}/report.html" in page for r in rows)
     # A rerun finds both points finished and runs nothing (serial: no second Ray start).
     assert run_command(parse([str(path), "--serial", "--out", str(out)])) == 0
-    assert "0 ran now, 2 finished before" in capsys.readouterr().out
+    assert "0 ran now (0 lost and retried), 2 finished before" in capsys.readouterr().out
 
 
 @pytest.mark.slow
@@ -534,7 +534,7 @@ def test_real_sweep_gathers_files(sweep_dir: Path) -> None:
     """--gather: the task works in a temporary folder and sends the files back."""
     spec = load_spec(write_sweep(sweep_dir, REAL.replace("[8.0, 10.0]", "[9.0]")))
     out = sweep_dir / "out"
-    outcome = run_sweep(spec, RunOptions(out=out, backend="serial", gather=True),
+    outcome = run_sweep(spec, RunOptions(out=out, backend="serial", files="gather"),
                         lambda line: None)
     (point,) = outcome.points
     assert outcome.records[point.id]["status"] == "ok"
