@@ -38,7 +38,7 @@ from aperture_fab.pipeline.design_job import (
     input_digests,
     run_design,
 )
-from aperture_fab.sweep.run import POINT_FILE, _clear_attempt
+from aperture_fab.sweep.worker import POINT_FILE, clear_attempt
 from aperture_fab.targets import asymmetric_marker, checker
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -251,7 +251,7 @@ def test_a_retried_sweep_point_removes_only_the_attempts_files(tmp_path: Path) -
     publish_files(folder, {"report.json": b"{}", "plate.stl": b"solid"})
     for name in (POINT_FILE, CHECKPOINT_NAME, "notes.txt", "view_holiday.png"):
         (folder / name).write_bytes(b"x")
-    _clear_attempt(folder)
+    clear_attempt(folder)
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt", "view_holiday.png"]
 
 
