@@ -75,7 +75,7 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert fov / 128 == pytest.approx(0.34, abs=0.01)  # the "~0.34 deg per view pixel" claim
     opt = config.optimizer
     assert (opt.method, opt.learning_rate, opt.iterations, opt.schedule, opt.init, opt.display) == (
-        "adam", 0.05, 150, "cosine", "pinholes", "optimized")
+        "adam", 0.1, 150, "cosine", "pinholes", "optimized")
     assert (opt.efficiency_weight, opt.plateau_patience, opt.precision, opt.device, opt.seed) == (
         0.0, 60, "float32", "auto", 0)
 
@@ -100,7 +100,7 @@ def test_seed_preset_is_the_dissertation_setting() -> None:
 @pytest.mark.parametrize("name, expected", [
     ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
                   "gap 10 mm", "thickness 0.005 mm", "pupil 4 mm", "eye relief 10 mm",
-                  "128 x 128", "43.6 x 43.6 deg", "optimized", "adam lr 0.05", "150 iterations"]),
+                  "128 x 128", "43.6 x 43.6 deg", "optimized", "adam lr 0.1", "150 iterations"]),
     ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",
               "thickness 0.2 mm", "straight", "sgd lr 0.8 momentum 0.9", "display target",
               "no early stop"]),

@@ -122,7 +122,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         },
         "optimizer": {
             "method": "adam",
-            "learning_rate": 0.05,
+            # 0.1 rather than 0.05: +0.5 to +0.9 dB p10 as made in 150 iterations (README)
+            "learning_rate": 0.1,
             "momentum": 0.9,  # unused by Adam; kept so a switch to SGD has a sensible value
             "iterations": 150,
             "schedule": "cosine",
