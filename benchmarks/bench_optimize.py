@@ -91,12 +91,14 @@ from aperture_fab.io.images import prepare_targets, resample
 from aperture_fab.optics import kernels
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import EyeStates, distribution_of
-from aperture_fab.optics.model import MAX_GRAD_BLOCKS_BYTES, Renderer
+from aperture_fab.optics.model import MAX_GRAD_BLOCKS_BYTES, Backend, Renderer, backend_for
 from aperture_fab.optimize import budget
 from aperture_fab.optimize.optimizer import initial_design, optimize, training_states
 from aperture_fab.targets import EXAMPLES
 
 DEVICES = ("auto", "cpu", "cuda")
+#: Backends whose fused kernels are timed on their own (CPU kernels, GPU kernels).
+FUSED = ("kernel", "triton")
 #: ru_maxrss is in KiB on Linux and in bytes on macOS.
 RSS_UNIT_BYTES = 1 if sys.platform == "darwin" else 1024
 MIB = 2**20
@@ -152,7 +154,7 @@ class Case:
     overrides: Mapping[str, Any] = field(default_factory=dict)
     warmup: int = 0
     quick_warmup: int = 0
-    backend: Literal["auto", "kernel", "torch"] = "auto"
+    backend: Backend = "auto"
 
     def __post_init__(self) -> None:
         least = 2 if self.metric == "design" else 1  # a design needs a steady-state interval
@@ -428,8 +430,10 @@ class _Profile:
 
     def kernel(self, original: Callable[..., Any], into: str) -> Callable[..., Any]:
         def timed(*args: Any) -> Any:
+            _sync(self.device)
             start = time.perf_counter()
             result = original(*args)
+            _sync(self.device)
             seconds = getattr(self, into)
             if seconds:  # inside a timed loss
                 seconds[-1] += time.perf_counter() - start
@@ -473,13 +477,16 @@ def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray, device
     watch = _Stopwatch(iterations, device)
     profile = _Profile(device)
     renderer = functools.partial(Renderer, backend=backend)
+    fused: Any = kernels
+    if backend == "triton":
+        from aperture_fab.optics import gpu_kernels as fused
     with mock.patch.object(optimize_module, "Renderer", renderer), \
             mock.patch.object(optimize_module, "_design_loss",
                               profile.design_loss(optimize_module._design_loss)), \
-            mock.patch.object(kernels, "view_forward",
-                              profile.kernel(kernels.view_forward, "kernel_forward")), \
-            mock.patch.object(kernels, "view_backward",
-                              profile.kernel(kernels.view_backward, "kernel_backward")):
+            mock.patch.object(fused, "view_forward",
+                              profile.kernel(fused.view_forward, "kernel_forward")), \
+            mock.patch.object(fused, "view_backward",
+                              profile.kernel(fused.view_backward, "kernel_backward")):
         start = time.perf_counter()
         optimize(config.scene, views, shown, config.optimizer, progress=False,
                  on_checkpoint=watch)
@@ -490,9 +497,7 @@ def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray, device
 
 
 def _backend_of(case: Case, device: torch.device) -> str:
-    if case.backend != "auto":
-        return case.backend
-    return "kernel" if device.type == "cpu" else "torch"
+    return backend_for(case.backend, device)
 
 
 def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dict[str, Any]:
@@ -507,7 +512,7 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
     views, shown = prepare_targets([EXAMPLES[case.target]()], config.scene.eye.view_pixels,
                                    config.scene.display.pixels)
     states = training_states(scene, settings, warmup)
-    estimate = budget.estimate(scene, len(states), "kernel" if backend == "kernel" else "torch",
+    estimate = budget.estimate(scene, len(states), backend,
                                settings.precision, channels=views.shape[1],
                                targets=views.shape[0],
                                display_optimized=settings.display == "optimized",
@@ -653,8 +658,8 @@ def summarize(case: Case, raws: Sequence[Mapping[str, Any]], quick: bool) -> dic
         "forward_s": forward_s,
         "backward_s": backward_s,
         "other_s": other_s,
-        "kernel_forward_s": kernel_fwd if first["backend"] == "kernel" else None,
-        "kernel_backward_s": kernel_bwd if first["backend"] == "kernel" else None,
+        "kernel_forward_s": kernel_fwd if first["backend"] in FUSED else None,
+        "kernel_backward_s": kernel_bwd if first["backend"] in FUSED else None,
         "snapshot_s": statistics.median(r["snapshot_s"] for r in raws),
         "measured_s": measured_s,
         "ratio_to_goal": None if case.goal_s is None else measured_s / case.goal_s,

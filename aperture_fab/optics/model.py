@@ -30,7 +30,9 @@ was.
 from __future__ import annotations
 
 import copy
+import importlib.util
 import math
+import os
 from dataclasses import dataclass
 from typing import Any, Literal, cast
 
@@ -43,7 +45,7 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.kernels import STATE_FIELDS
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
-__all__ = ["BACKENDS", "Backend", "Renderer", "render_open", "render_open_states"]
+__all__ = ["BACKENDS", "Backend", "Renderer", "backend_for", "render_open", "render_open_states"]
 
 #: Spacing of the blur-stack radius levels in display pixels (finer: smaller interpolation error).
 LEVEL_SPACING_PX = 0.5
@@ -237,12 +239,38 @@ def _checked_offsets(scene: Scene, offsets: np.ndarray | None) -> np.ndarray | N
     return array
 
 
-Backend = Literal["auto", "kernel", "torch"]
-BACKENDS: tuple[Backend, ...] = ("auto", "kernel", "torch")
+Backend = Literal["auto", "kernel", "torch", "triton"]
+BACKENDS: tuple[Backend, ...] = ("auto", "kernel", "torch", "triton")
 #: Pair tables of the torch path kept per renderer (nominal positions and recent eye states).
 TABLE_CACHE = 8
 #: Most grad-stack buffers of the CPU kernel's backward (one per block of view rows).
 MAX_GRAD_BLOCKS_BYTES = 2 * 2**30
+
+
+def backend_for(backend: Backend, device: torch.device) -> Backend:
+    """The backend that runs: "auto" is the CPU kernels on the CPU, the Triton kernels on CUDA
+    (the torch path where Triton is not installed); a backend that cannot run on `device` is a
+    ValueError naming the fix."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend = {backend!r} is not allowed; choose one of "
+                         f"{', '.join(BACKENDS)}.")
+    triton_here = importlib.util.find_spec("triton") is not None
+    if backend == "auto":
+        if device.type == "cpu":
+            return "kernel"
+        return "triton" if triton_here and device.type == "cuda" else "torch"
+    if backend == "kernel" and device.type != "cpu":
+        raise ValueError(f"backend 'kernel' runs on the CPU; device is {device}. Use backend "
+                         "'triton' or 'torch' (or 'auto') on CUDA.")
+    if backend == "triton":
+        if not triton_here:
+            raise ValueError("backend 'triton' needs the triton package (it comes with CUDA "
+                             "builds of PyTorch); use backend 'torch' or 'auto'.")
+        if device.type != "cuda" and os.environ.get("TRITON_INTERPRET", "0") != "1":
+            raise ValueError(f"backend 'triton' runs on CUDA; device is {device}. Use backend "
+                             "'kernel' (or 'auto') on the CPU; TRITON_INTERPRET=1 runs it on "
+                             "the CPU for tests.")
+    return backend
 
 
 class Renderer:
@@ -259,8 +287,10 @@ class Renderer:
         as its square), so no pair is lost; holes that come to overlap add their light (no
         union). Offsets beyond the plate's size are rejected.
     backend: "kernel" (fused CPU kernels, `aperture_fab.optics.kernels`: geometry on the fly, a
-        batch of eye states in one pass), "torch" (pair tables and grid_sample: CUDA, and the
-        reference the kernels are tested against) or "auto" (kernel on the CPU, torch on CUDA).
+        batch of eye states in one pass), "triton" (the same walk as fused GPU kernels,
+        `aperture_fab.optics.gpu_kernels`), "torch" (pair tables and grid_sample: the reference
+        the kernels are tested against) or "auto" (kernel on the CPU, triton on CUDA, torch
+        there without Triton).
     """
 
     def __init__(
@@ -272,20 +302,12 @@ class Renderer:
         hole_offset_mm: np.ndarray | None = None,
         backend: Backend = "auto",
     ) -> None:
-        if backend not in BACKENDS:
-            raise ValueError(f"backend = {backend!r} is not allowed; choose one of "
-                             f"{', '.join(BACKENDS)}.")
         self.scene = scene
         self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
         self.device = torch.device(device)
         self.dtype = dtype
         self.chunk_pairs = chunk_pairs
-        if backend == "auto":
-            backend = "kernel" if self.device.type == "cpu" else "torch"
-        elif backend == "kernel" and self.device.type != "cpu":
-            raise ValueError(f"backend 'kernel' runs on the CPU; device is {self.device}. Use "
-                             "backend 'torch' (or 'auto') on CUDA.")
-        self.backend = backend
+        self.backend = backend_for(backend, self.device)
         self.optics = opt = _Optics.of(scene)
         plate, eye, display = scene.plate, scene.eye, scene.display
 
@@ -442,6 +464,8 @@ class Renderer:
         rows = self.state_rows(states)
         if self.backend == "kernel":
             view = _KernelView.apply(radius, stack, self, rows)
+        elif self.backend == "triton":
+            view = _TritonView.apply(radius, stack.to(self.device), self, rows)
         else:
             view = torch.stack([self._render_table(radius, stack, row) for row in rows])
         return view.reshape(len(rows), stack.shape[1], *reversed(scene.eye.view_pixels))
@@ -606,6 +630,31 @@ class Renderer:
         ], dtype=np.float64)
 
 
+def _walk_plan(renderer: Renderer, radius: torch.Tensor, rows: np.ndarray, radius_grad: bool
+               ) -> tuple[np.ndarray, float, int, bool, float, float]:
+    """What the fused kernels' hole walk needs beyond the scene (see
+    `aperture_fab.optics.kernels`): the hole offsets (K, 2) mm, the search's extra reach, the
+    box of holes the union of the states' windows can span, whether every state focuses at
+    infinity (they then share each pair's geometry and display sample), the walk's margin and
+    the radius at or below which a hole is skipped."""
+    scene = renderer.scene
+    vx, vy = scene.eye.view_directions()
+    offsets = (np.zeros((radius.shape[0], 2)) if renderer.hole_offset_mm is None
+               else renderer.hole_offset_mm.reshape(-1, 2))
+    extra = renderer._search_extra_mm
+    shared = bool(np.all(rows[:, 3] == 1.0) and np.all(rows[:, 4] == 1.0))
+    # Holes per axis that the union of the states' windows can span, plus slack.
+    slack = scene.plate.thickness_mm * float(np.hypot(np.abs(vx).max(), np.abs(vy).max()))
+    spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra) + slack)
+    box = math.ceil(spread / min(scene.plate.pitch_mm)) + 3
+    margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
+        np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
+    # Without a radius gradient, closed cells (radius sqrt(_EPS): no area) are skipped; a
+    # gradient keeps them, as a closed cell's gradient can open it.
+    closed = 0.0 if radius_grad else CLOSED_RADIUS_MM
+    return offsets, extra, box, shared, margin, closed
+
+
 class _KernelView(torch.autograd.Function):
     """Views (S, C, ny, nx) from hole radii (K,) and a display stack (1, C, L, H, W) through
     the fused CPU kernels, for the eye states `rows` (`Renderer.state_rows`). States that all
@@ -613,26 +662,14 @@ class _KernelView(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, radius, stack, renderer, rows):
-        scene = renderer.scene
-        vx, vy = scene.eye.view_directions()
-        offsets = (np.zeros((radius.shape[0], 2)) if renderer.hole_offset_mm is None
-                   else renderer.hole_offset_mm.reshape(-1, 2))
+        vx, vy = renderer.scene.eye.view_directions()
+        offsets, extra, box, shared, margin, closed = _walk_plan(
+            renderer, radius, rows, ctx.needs_input_grad[0])
         channels_last = stack.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
-        extra = renderer._search_extra_mm
         args: tuple[Any, ...] = (radius.detach().double().numpy(), channels_last, vx, vy, rows,
-                renderer.kernel_geometry(), offsets, extra)
+                                 renderer.kernel_geometry(), offsets, extra, box, shared, margin,
+                                 closed)
         out = np.zeros((len(rows), stack.shape[1], len(vy), len(vx)))
-        shared = bool(np.all(rows[:, 3] == 1.0) and np.all(rows[:, 4] == 1.0))
-        # Holes per axis that the union of the states' windows can span, plus slack.
-        slack = scene.plate.thickness_mm * float(np.hypot(np.abs(vx).max(), np.abs(vy).max()))
-        spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra)
-                       + slack)
-        margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
-            np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
-        # Without a radius gradient, closed cells (radius sqrt(_EPS): no area) are skipped; a
-        # gradient keeps them, as a closed cell's gradient can open it.
-        closed = 0.0 if ctx.needs_input_grad[0] else CLOSED_RADIUS_MM
-        args = (*args, math.ceil(spread / min(scene.plate.pitch_mm)) + 3, shared, margin, closed)
         cast(Any, kernels.view_forward)(*args, out)  # numba dispatchers are untyped
         ctx.args, ctx.dtype = args, stack.dtype
         return torch.from_numpy(out).to(stack.dtype)
@@ -655,6 +692,40 @@ class _KernelView(torch.autograd.Function):
             out_stack = torch.from_numpy(grad_stack.sum(0)).permute(3, 0, 1, 2)[None]
             out_stack = out_stack.to(ctx.dtype).contiguous()
         return out_radius, out_stack, None, None
+
+
+class _TritonView(torch.autograd.Function):
+    """As `_KernelView`, through the fused GPU kernels (`aperture_fab.optics.gpu_kernels`) on
+    the stack's device: every eye state in one launch, nothing per pair stored."""
+
+    @staticmethod
+    def forward(ctx, radius, stack, renderer, rows):
+        from aperture_fab.optics import gpu_kernels
+
+        device = stack.device
+        offsets, extra, _, shared, margin, closed = _walk_plan(
+            renderer, radius, rows, ctx.needs_input_grad[0])
+        vx, vy = (torch.as_tensor(v, dtype=torch.float64, device=device)
+                  for v in renderer.scene.eye.view_directions())
+        args = (radius.detach().double().contiguous(),
+                stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
+                renderer.kernel_geometry(),
+                torch.as_tensor(offsets, dtype=torch.float64, device=device).contiguous(),
+                extra, shared, margin, closed)
+        ctx.args, ctx.dtype = args, stack.dtype
+        return gpu_kernels.view_forward(*args).to(stack.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_view):
+        from aperture_fab.optics import gpu_kernels
+
+        want_stack = bool(ctx.needs_input_grad[1])
+        grad_radius, grad_stack = gpu_kernels.view_backward(
+            *ctx.args, grad_view.detach().double().contiguous(), want_stack)
+        out_stack = None
+        if grad_stack is not None:
+            out_stack = grad_stack.permute(3, 0, 1, 2)[None].to(ctx.dtype).contiguous()
+        return grad_radius.to(ctx.dtype), out_stack, None, None
 
 
 def render_open_states(scene: Scene, display: torch.Tensor, states: EyeStates,

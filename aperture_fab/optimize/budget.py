@@ -29,7 +29,9 @@ see `stack_shape`):
   radius grads; each thread's pair cache (box^2 x ~(PAIR_CACHE_BYTES + 24 C) bytes). A
   tracked design (optimizer.tracking) renders each state through its own solved display: one
   more stack per state and target.
-- torch path (CUDA, and the reference on the CPU): per eye state a pair table of N x W pairs
+- triton path (CUDA): as the kernel path, with no pair caches and one gradient buffer (B = 1):
+  the GPU kernels add every pair's gradient into a float64 stack and radius buffer (atomics).
+- torch path (the reference; CUDA without Triton): per eye state a pair table of N x W pairs
   (W: holes within the pupil's footprint of one view pixel, padded to the most of any view
   pixel), each 8 + 4 isz bytes (hole index, two offsets, display point; + isz with emission
   falloff, its weight), plus what autograd
@@ -102,7 +104,7 @@ CHUNK_VALUES = 30
 #: values, the seen flag, the area gradient, the touched index).
 PAIR_CACHE_BYTES = 8 * kernels._CACHE_FIELDS + 17
 
-Backend = Literal["kernel", "torch"]
+Backend = Literal["kernel", "torch", "triton"]
 
 
 @dataclass(frozen=True)
@@ -201,8 +203,8 @@ def estimate(
     tracked: bool = False,
 ) -> MemoryEstimate:
     """`estimate_bytes` with its terms (see the module docstring for the model)."""
-    if backend not in ("kernel", "torch"):
-        raise ValueError(f"backend = {backend!r} is not allowed; use kernel or torch.")
+    if backend not in ("kernel", "torch", "triton"):
+        raise ValueError(f"backend = {backend!r} is not allowed; use kernel, torch or triton.")
     if min(states_per_pass, channels, targets) < 1:
         raise ValueError(f"states_per_pass = {states_per_pass}, channels = {channels} and "
                          f"targets = {targets} must be >= 1.")
@@ -225,9 +227,11 @@ def estimate(
     threads = kernels.thread_count() if threads is None else threads
     terms: dict[str, int] = {}
     alive: dict[str, int] = {"kernel spectrum": kernel_spectrum, "display": display_params}
-    if backend == "kernel":
-        blocks = max(1, min(eye.view_pixels[1], threads,
-                            model.MAX_GRAD_BLOCKS_BYTES // max(1, stack)))
+    if backend in ("kernel", "triton"):
+        # The GPU kernels add every gradient into one float64 buffer (atomics): one block.
+        gpu = backend == "triton"
+        blocks = 1 if gpu else max(1, min(eye.view_pixels[1], threads,
+                                          model.MAX_GRAD_BLOCKS_BYTES // max(1, stack)))
         alive["display stack"] = t * stack  # channels-last copies kept for the backward
         if tracked:  # one solved display per state, rendered on its own
             alive["tracked stacks"] = t * s * stack
@@ -239,14 +243,15 @@ def estimate(
                   + 2 * distribution.rotation_mm * math.sin(math.radians(distribution.gaze_deg))
                   + plate.thickness_mm * math.hypot(*eye.view_tan_half))
         box = math.ceil(spread / min(plate.pitch_mm)) + 3
-        alive["pair caches"] = threads * box * box * (PAIR_CACHE_BYTES + 24 * c)
+        if not gpu:  # the GPU kernels keep nothing per pair
+            alive["pair caches"] = threads * box * box * (PAIR_CACHE_BYTES + 24 * c)
         forward = {
             "FFT buffers": 2 * full + spectrum if display_optimized else full + product,
             "views": full + views * (8 + (isz if isz != 8 else 0)),
         }
         grads = views * (isz + (8 if isz != 8 else 0)) + 8 * (blocks + 1) * k
         if display_optimized:
-            grads += (blocks + 2) * stack
+            grads += ((8 // isz + 1) * stack if gpu else (blocks + 2) * stack)
         backward = {
             "loss gradients": LOSS_GRADIENTS * views * isz,
             "grad buffers": grads,
@@ -299,7 +304,8 @@ def estimate_bytes(
     tracked: bool = False,
 ) -> int:
     """Peak bytes of one optimizer iteration of `scene` rendering `states_per_pass` eye states
-    per pass with renderer backend "kernel" (CPU) or "torch" (CUDA, the reference), in dtype
+    per pass with renderer backend "kernel" (CPU), "triton" (CUDA) or "torch" (the reference), in
+    dtype
     (torch.float32 / "float32" or float64); `channels`, `targets`: of the targets;
     `display_optimized`: whether the display content is optimized (its gradient is computed);
     `fresh_states`: the states change every iteration (the torch path keeps the pair tables of
@@ -360,11 +366,11 @@ def check_budget(
     targets_shape: the targets' shape (T, C, ny, nx) (default: one RGB target).
     budget_bytes: the budget (default: `default_budget()`: ENV_BUDGET_GB, or DEFAULT_SHARE of the
         memory available now). device: where it runs (default: settings.device); the backend
-        is the Renderer's "auto" choice: kernel on the CPU, torch on CUDA.
+        is the Renderer's "auto" choice (`aperture_fab.optics.model.backend_for`).
     """
     # An explicit device may be one this machine lacks: the estimate is for planning.
     where = resolve_device(settings.device) if device is None else torch.device(device)
-    backend: Backend = "kernel" if where.type == "cpu" else "torch"
+    backend: Backend = model.backend_for("auto", where)
     shape = tuple(targets_shape) if targets_shape is not None else (1, 3)
     count = int(shape[0]) if len(shape) >= 1 and shape[0] > 0 else 1
     channels = int(shape[1]) if len(shape) >= 2 and shape[1] > 0 else 3

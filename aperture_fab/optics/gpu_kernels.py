@@ -1,0 +1,541 @@
+"""Fused GPU kernels (Triton) for the view through a plate: the CPU kernels' hole walk on CUDA.
+
+The same model and arithmetic as `aperture_fab.optics.kernels` (its docstring gives the layouts
+and the meaning of `states`, `geometry`, `extra`, `margin` and `closed`), written for a GPU: one
+lane per (eye state, view pixel), lanes in blocks of adjacent view pixels, each walking the box
+of holes its footprint can reach and computing every pair's geometry on the fly. Nothing per pair
+is stored, so memory is linear in the plate, the display and the view, never in their product,
+and every eye state of an iteration runs in one launch.
+
+Forward: one lane per (state, view pixel) writes its view value. Backward: the radius and stack
+gradients are sums over pairs, added with atomics (float64). When every state focuses at
+infinity (`shared`), a pair's geometry and display sample do not depend on the state, so the
+backward walks each view pixel's union of the states' hole windows once and sums the states'
+pupil shares per pair before its single scatter into the stack's gradient: the scatter, which
+bounds the backward, is paid once per pair instead of once per (state, pair).
+
+Geometry and sums are float64, as on the CPU; the stack is read in its own dtype. Atomic sums
+are not bit-reproducible from run to run (the order of the additions varies): GPU results
+match the CPU's to rounding, not bit for bit.
+
+CPU-testable form: with TRITON_INTERPRET=1 set before this module is imported, Triton runs the
+kernels on CPU tensors in numpy (slowly: small cases only); the interpreter has no libdevice,
+so acos and asin come from numpy there. tests/test_gpu_kernels.py compares these kernels with
+the CPU kernels that way, and on CUDA where there is one.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+import torch
+import triton
+import triton.language as tl
+
+__all__ = ["INTERPRETED", "view_backward", "view_forward"]
+
+#: Triton's interpreter runs the kernels (TRITON_INTERPRET=1, read at import as Triton does).
+INTERPRETED = os.environ.get("TRITON_INTERPRET", "0") == "1"
+#: View pixels per program (one lane each) and the warps that run them.
+BLOCK = 128
+NUM_WARPS = 4
+#: Constants the kernels read (Triton admits only constexpr globals).
+_EPS = tl.constexpr(1e-12)
+_PI = tl.constexpr(math.pi)
+
+
+class _NumpyLibdevice:
+    """acos and asin for the interpreter, which lowers no libdevice call."""
+
+    @staticmethod
+    def _unary(x: Any, fn: Any) -> Any:
+        from triton.runtime.interpreter import TensorHandle
+
+        return tl.core.tensor(TensorHandle(fn(x.handle.data), x.handle.dtype.scalar), x.type)
+
+    @staticmethod
+    def acos(x: Any) -> Any:
+        return _NumpyLibdevice._unary(x, np.arccos)
+
+    @staticmethod
+    def asin(x: Any) -> Any:
+        return _NumpyLibdevice._unary(x, np.arcsin)
+
+
+def _interpreted_bound(x: Any) -> int:
+    """A loop bound as a Python int under the interpreter, whose scalar arguments are arrays
+    of shape (1,) that NumPy 2.4 no longer converts with int()."""
+    data = x.handle.data if hasattr(x, "handle") else x
+    return int(np.asarray(data).reshape(-1)[0])
+
+
+if INTERPRETED:
+    libdevice: Any = _NumpyLibdevice()
+    _bound: Any = _interpreted_bound
+else:
+    from triton.language.extra import libdevice
+
+    @triton.jit
+    def _bound(x):
+        return x
+
+
+@triton.jit
+def _lens(r1, m, d):
+    """Area of two disks (radii r1 and |m| r1, centres d apart) and its derivative in r1."""
+    # Equal disks (infinite focus): one acos.
+    half = tl.minimum(d / (2.0 * r1), 1.0)
+    theta = libdevice.acos(half)
+    eq_area = 2.0 * r1 * r1 * theta - d * r1 * tl.sqrt(tl.maximum(1.0 - half * half, 0.0))
+    eq_darea = 4.0 * r1 * theta
+    apart = d >= 2.0 * r1
+    eq_area = tl.where(apart, 0.0, eq_area)
+    eq_darea = tl.where(apart, 0.0, eq_darea)
+    # Unequal disks.
+    am = tl.abs(m)
+    r2 = am * r1
+    small = tl.minimum(r1, r2)
+    ds = tl.maximum(d, _EPS)
+    c1 = tl.minimum(1.0, tl.maximum(-1.0, (ds * ds + r1 * r1 - r2 * r2) / (2.0 * ds * r1)))
+    c2 = tl.minimum(1.0, tl.maximum(-1.0, (ds * ds + r2 * r2 - r1 * r1) / (2.0 * ds * r2)))
+    t1 = libdevice.acos(c1)
+    t2 = libdevice.acos(c2)
+    area = r1 * r1 * t1 + r2 * r2 * t2 - r1 * tl.sin(t1) * ds
+    darea = 2.0 * r1 * t1 + 2.0 * am * r2 * t2
+    inside = d <= tl.abs(r1 - r2)
+    area = tl.where(inside, _PI * small * small, area)
+    darea = tl.where(inside, 2.0 * _PI * small * small / r1, darea)
+    outside = d >= r1 + r2
+    area = tl.where(outside, 0.0, area)
+    darea = tl.where(outside, 0.0, darea)
+    equal = m == 1.0
+    return tl.where(equal, eq_area, area), tl.where(equal, eq_darea, darea)
+
+
+@triton.jit
+def _share(pupil_b, lens_r, po):
+    """A lens's share inside the pupil footprint's edge, and d (area x share) / d area."""
+    x = (pupil_b - po) / lens_r
+    xs = tl.minimum(tl.maximum(x, -1.0), 1.0)
+    root = tl.sqrt(tl.maximum(1.0 - xs * xs, 0.0))
+    share = 0.5 + (libdevice.asin(xs) + xs * root) / _PI
+    slope = share - xs * root / _PI
+    share = tl.where(x >= 1.0, 1.0, tl.where(x <= -1.0, 0.0, share))
+    slope = tl.where(x >= 1.0, 1.0, tl.where(x <= -1.0, 0.0, slope))
+    return share, slope
+
+
+@triton.jit
+def _level(level_scale, area, darea):
+    """Stack level coordinate in [-1, 1] of a window of `area`, and d / d r."""
+    level = 2.0 * level_scale * area - 1.0
+    inside = (level < 1.0) & (level > -1.0)
+    return tl.minimum(tl.maximum(level, -1.0), 1.0), tl.where(inside, 2.0 * level_scale * darea,
+                                                              0.0)
+
+
+@triton.jit
+def _display_optics(geom_ptr, wx, wy, sx, sy):
+    """Cover glass shift and cos^k emission weight at a chief ray of slope (sx, sy)."""
+    t_g = tl.load(geom_ptr + 17)
+    n_glass = tl.load(geom_ptr + 18)
+    power = tl.load(geom_ptr + 19)
+    tan2 = sx * sx + sy * sy
+    n2 = n_glass * n_glass
+    loss = tl.where(t_g > 0.0, t_g * (1.0 - 1.0 / tl.sqrt(n2 + (n2 - 1.0) * tan2)), 0.0)
+    emission = tl.where(power > 0.0, tl.exp(-power / 2.0 * tl.log(1.0 + tan2)), 1.0)
+    return wx - loss * sx, wy - loss * sy, emission
+
+
+@triton.jit
+def _pair(geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale,
+          SHARED: tl.constexpr, OPTICS: tl.constexpr):
+    """A (view direction, hole) pair for one eye state: bottom-face centre, lens centre, area,
+    d area / d r, equal-area lens radius, stack column, row, level, d level / d r, emission
+    (as `aperture_fab.optics.kernels._pair`)."""
+    t = tl.load(geom_ptr + 4)
+    s_b = tl.load(geom_ptr + 9)
+    s_t = tl.load(geom_ptr + 10)
+    s_d = tl.load(geom_ptr + 11)
+    bx = hx - t / 2.0 * ax
+    by = hy - t / 2.0 * ay
+    gap = s_d - s_b
+    if SHARED:
+        # The top-face disk seen along v lands t (a + v) away from the bottom one.
+        dx = t * (ax + vx)
+        dy = t * (ay + vy)
+        area, darea = _lens(r, r * 0.0 + 1.0, tl.sqrt(dx * dx + dy * dy))
+        lx = bx + dx / 2.0
+        ly = by + dy / 2.0
+        wx = lx + gap * vx
+        wy = ly + gap * vy
+        sx = vx
+        sy = vy
+    else:
+        fx = cx + s_b * vx
+        fy = cy + s_b * vy
+        ctx = fx + m * (hx + t / 2.0 * ax - cx - s_t * vx)
+        cty = fy + m * (hy + t / 2.0 * ay - cy - s_t * vy)
+        area, darea = _lens(r, m, tl.sqrt((ctx - bx) * (ctx - bx) + (cty - by) * (cty - by)))
+        lx = (bx + ctx) / 2.0
+        ly = (by + cty) / 2.0
+        wx = cx + s_d * vx + mu * (lx - fx)
+        wy = cy + s_d * vy + mu * (ly - fy)
+        sx = (wx - lx) / gap
+        sy = (wy - ly) / gap
+    emission = tl.full(wx.shape, 1.0, tl.float64)
+    if OPTICS:
+        wx, wy, emission = _display_optics(geom_ptr, wx, wy, sx, sy)
+    col = (wx + tl.load(geom_ptr + 12)) / tl.load(geom_ptr + 14) - 0.5 + tl.load(geom_ptr + 16)
+    row = (tl.load(geom_ptr + 13) - wy) / tl.load(geom_ptr + 15) - 0.5 + tl.load(geom_ptr + 16)
+    level, dlevel = _level(level_scale, area, darea)
+    lens_r = tl.sqrt(tl.maximum(area / _PI, _EPS))
+    return bx, by, lx, ly, area, darea, lens_r, col, row, level, dlevel, emission
+
+
+@triton.jit
+def _hole(geom_ptr, offsets_ptr, i, j, ok):
+    """Hole (i, j) (int rows, columns; masked by ok): flat index, undisplaced axis point x, y
+    at mid-thickness, the displaced one, and the axis slope ax, ay (chief-ray axes from the
+    undisplaced hole)."""
+    ncx = tl.load(geom_ptr + 0)
+    ncy = tl.load(geom_ptr + 1)
+    hx = (j.to(tl.float64) - (ncx - 1.0) / 2.0) * tl.load(geom_ptr + 2)
+    hy = ((ncy - 1.0) / 2.0 - i.to(tl.float64)) * tl.load(geom_ptr + 3)
+    chief = tl.load(geom_ptr + 5) > 0.0
+    axis = tl.load(geom_ptr + 8)
+    ax = tl.where(chief, (tl.load(geom_ptr + 6) - hx) / axis, 0.0)
+    ay = tl.where(chief, (tl.load(geom_ptr + 7) - hy) / axis, 0.0)
+    k = tl.where(ok, i * ncx.to(tl.int32) + j, 0)
+    dx = tl.load(offsets_ptr + 2 * k, mask=ok, other=0.0)
+    dy = tl.load(offsets_ptr + 2 * k + 1, mask=ok, other=0.0)
+    return k, hx, hy, hx + dx, hy + dy, ax, ay
+
+
+@triton.jit
+def _taps(col, row, level, L, H, W):
+    """Trilinear taps: level l0 and its weight toward l0 + 1, the clamped corners' flat
+    offsets (l0 level; add H W for l0 + 1) and the four corner weights (0 off the stack)."""
+    lf = (level + 1.0) * (L - 1) / 2.0
+    l0 = tl.minimum(lf.to(tl.int32), L - 2)
+    wl = lf - l0.to(tl.float64)
+    xf = tl.floor(col)
+    yf = tl.floor(row)
+    wx = col - xf
+    wy = row - yf
+    x0 = xf.to(tl.int32)
+    y0 = yf.to(tl.int32)
+    ax0 = tl.where((x0 >= 0) & (x0 < W), 1.0 - wx, 0.0)
+    ax1 = tl.where((x0 + 1 >= 0) & (x0 + 1 < W), wx, 0.0)
+    ay0 = tl.where((y0 >= 0) & (y0 < H), 1.0 - wy, 0.0)
+    ay1 = tl.where((y0 + 1 >= 0) & (y0 + 1 < H), wy, 0.0)
+    x0c = tl.minimum(tl.maximum(x0, 0), W - 1)
+    x1c = tl.minimum(tl.maximum(x0 + 1, 0), W - 1)
+    y0c = tl.minimum(tl.maximum(y0, 0), H - 1)
+    y1c = tl.minimum(tl.maximum(y0 + 1, 0), H - 1)
+    base = l0.to(tl.int64) * H * W
+    o00 = base + (y0c * W + x0c).to(tl.int64)
+    o01 = base + (y0c * W + x1c).to(tl.int64)
+    o10 = base + (y1c * W + x0c).to(tl.int64)
+    o11 = base + (y1c * W + x1c).to(tl.int64)
+    return wl, o00, o01, o10, o11, ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1
+
+
+@triton.jit
+def _sample(stack_ptr, col, row, level, ok, L, H, W, C: tl.constexpr, CP: tl.constexpr):
+    """Trilinear stack sample (BLOCK, CP) float64 and its slope along the level index."""
+    wl, o00, o01, o10, o11, w00, w01, w10, w11 = _taps(col, row, level, L, H, W)
+    cs = tl.arange(0, CP)
+    mask = ok[:, None] & (cs < C)[None, :]
+    plane = H.to(tl.int64) * W
+    lo = tl.zeros(mask.shape, tl.float64)
+    hi = tl.zeros(mask.shape, tl.float64)
+    for corner in tl.static_range(4):
+        if corner == 0:
+            off, w = o00, w00
+        elif corner == 1:
+            off, w = o01, w01
+        elif corner == 2:
+            off, w = o10, w10
+        else:
+            off, w = o11, w11
+        ptr = stack_ptr + off[:, None] * C + cs[None, :]
+        lo += w[:, None] * tl.load(ptr, mask=mask, other=0.0).to(tl.float64)
+        hi += w[:, None] * tl.load(ptr + plane * C, mask=mask, other=0.0).to(tl.float64)
+    return lo + wl[:, None] * (hi - lo), hi - lo
+
+
+@triton.jit
+def _scatter(grad_ptr, col, row, level, g, ok, L, H, W, C: tl.constexpr, CP: tl.constexpr):
+    """Adjoint of `_sample`: add g (BLOCK, CP) at the sample's taps."""
+    wl, o00, o01, o10, o11, w00, w01, w10, w11 = _taps(col, row, level, L, H, W)
+    cs = tl.arange(0, CP)
+    mask = ok[:, None] & (cs < C)[None, :]
+    plane = H.to(tl.int64) * W
+    g_lo = (1.0 - wl)[:, None] * g
+    g_hi = wl[:, None] * g
+    for corner in tl.static_range(4):
+        if corner == 0:
+            off, w = o00, w00
+        elif corner == 1:
+            off, w = o01, w01
+        elif corner == 2:
+            off, w = o10, w10
+        else:
+            off, w = o11, w11
+        ptr = grad_ptr + off[:, None] * C + cs[None, :]
+        tl.atomic_add(ptr, w[:, None] * g_lo, mask=mask, sem="relaxed")
+        tl.atomic_add(ptr + plane * C, w[:, None] * g_hi, mask=mask, sem="relaxed")
+
+
+@triton.jit
+def _span(geom_ptr, states_ptr, s, vx, vy, margin, extra, SHARED: tl.constexpr):
+    """Where state s's pairs lie for view directions (vx, vy): footprint centre fx, fy; the
+    centre ox, oy and radius of the disk of hole axes to walk (as the CPU kernels' `_span`)."""
+    t = tl.load(geom_ptr + 4)
+    s_b = tl.load(geom_ptr + 9)
+    row = states_ptr + s * 8
+    fx = tl.load(row + 0) + s_b * vx
+    fy = tl.load(row + 1) + s_b * vy
+    if SHARED:
+        ox = fx - t * vx / 2.0
+        oy = fy - t * vy / 2.0
+        outer = tl.load(row + 2) + margin + 0.0 * vx
+    else:
+        ox = fx
+        oy = fy
+        outer = tl.load(row + 7) + extra + 0.0 * vx
+    return fx, fy, ox, oy, outer
+
+
+@triton.jit
+def _origin(geom_ptr, ox, oy, outer):
+    """First row and column (int32) of the box of holes around a disk (centre ox, oy)."""
+    ncx = tl.load(geom_ptr + 0)
+    ncy = tl.load(geom_ptr + 1)
+    r0 = tl.ceil((ncy - 1.0) / 2.0 - (oy + outer) / tl.load(geom_ptr + 3))
+    c0 = tl.ceil((ox - outer) / tl.load(geom_ptr + 2) + (ncx - 1.0) / 2.0)
+    return r0.to(tl.int32), c0.to(tl.int32)
+
+
+@triton.jit
+def _in_plate(geom_ptr, i, j, live):
+    ncx = tl.load(geom_ptr + 0).to(tl.int32)
+    ncy = tl.load(geom_ptr + 1).to(tl.int32)
+    return live & (i >= 0) & (i < ncy) & (j >= 0) & (j < ncx)
+
+
+@triton.jit
+def _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK: tl.constexpr):
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < nx * ny
+    ix = p % nx
+    iy = p // nx
+    vx = tl.load(vx_ptr + ix, mask=live, other=0.0)
+    vy = tl.load(vy_ptr + iy, mask=live, other=0.0)
+    return live, ix, iy, vx, vy
+
+
+#: Integer arguments that Triton would otherwise compile a variant for when they equal 1.
+_SIZES = ["nx", "ny", "L", "H", "W", "box_r", "box_c"]
+
+
+@triton.jit(do_not_specialize=_SIZES)
+def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
+                    out_ptr, extra, margin, closed, nx, ny, L, H, W, box_r, box_c,
+                    C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
+                    SHARED: tl.constexpr, OPTICS: tl.constexpr):
+    """out[s, c, iy, ix] for state s = program_id(1) and a block of view pixels."""
+    s = tl.program_id(1)
+    live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
+    row = states_ptr + s * 8
+    cx = tl.load(row + 0)
+    cy = tl.load(row + 1)
+    pupil_b = tl.load(row + 2)
+    m = tl.load(row + 3)
+    mu = tl.load(row + 4)
+    level_scale = tl.load(row + 5)
+    norm = tl.load(row + 6)
+    keep = tl.load(row + 7)
+    fx, fy, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra, SHARED)
+    r_start, c_start = _origin(geom_ptr, ox, oy, outer)
+    acc = tl.zeros((BLOCK, CP), tl.float64)
+    for dr in range(0, _bound(box_r)):
+        i = r_start + dr
+        for dc in range(0, _bound(box_c)):
+            j = c_start + dc
+            ok = _in_plate(geom_ptr, i, j, live)
+            k, ux, uy, hx, hy, ax, ay = _hole(geom_ptr, offsets_ptr, i, j, ok)
+            # The walk's disk, around the undisplaced axis (as the CPU kernels' chords).
+            ok = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
+            r = tl.load(radius_ptr + k, mask=ok, other=1.0)
+            ok = ok & (r > closed)
+            bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
+                geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale, SHARED,
+                OPTICS)
+            if not SHARED:
+                ok = ok & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy) < keep * keep)
+            ok = ok & (area > 0.0)
+            po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
+            share, _ = _share(pupil_b, lens_r, po)
+            w = tl.where(ok, area * share * norm * emission, 0.0)
+            value, _ = _sample(stack_ptr, col, rw, level, ok & (w != 0.0), L, H, W, C, CP)
+            acc += w[:, None] * value
+    cs = tl.arange(0, CP)
+    out = out_ptr + ((s * C + cs[None, :]) * ny + iy[:, None]) * nx + ix[:, None]
+    tl.store(out, acc, mask=live[:, None] & (cs < C)[None, :])
+
+
+@triton.jit(do_not_specialize=[*_SIZES, "n_states"])
+def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
+                     grad_out_ptr, grad_radius_ptr, grad_stack_ptr, extra, margin, closed,
+                     nx, ny, L, H, W, box_r, box_c, n_states,
+                     C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
+                     SHARED: tl.constexpr, OPTICS: tl.constexpr, WANT_STACK: tl.constexpr):
+    """Gradients of sum(grad_out * view) into grad_radius (K,) and grad_stack (L, H, W, C).
+
+    Not shared: program_id(1) is the state, walked as in the forward. Shared: program_id(1) is
+    0 and each lane walks the union of all states' windows, summing the states' shares per
+    pair before one scatter."""
+    live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
+    cs = tl.arange(0, CP)
+    cmask = live[:, None] & (cs < C)[None, :]
+    lscale = (L - 1) / 2.0
+    if SHARED:
+        s_first = 0
+        s_last = n_states
+    else:
+        s_first = tl.program_id(1)
+        s_last = s_first + 1
+    # The box's origin: the smallest over the lane's states.
+    r_start = tl.full((BLOCK,), 1 << 30, tl.int32)
+    c_start = tl.full((BLOCK,), 1 << 30, tl.int32)
+    for s in range(_bound(s_first), _bound(s_last)):
+        _, _, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra, SHARED)
+        r0, c0 = _origin(geom_ptr, ox, oy, outer)
+        r_start = tl.minimum(r_start, r0)
+        c_start = tl.minimum(c_start, c0)
+    row0 = states_ptr + s_first * 8
+    m = tl.load(row0 + 3)
+    mu = tl.load(row0 + 4)
+    level_scale = tl.load(row0 + 5)
+    for dr in range(0, _bound(box_r)):
+        i = r_start + dr
+        for dc in range(0, _bound(box_c)):
+            j = c_start + dc
+            ok = _in_plate(geom_ptr, i, j, live)
+            k, ux, uy, hx, hy, ax, ay = _hole(geom_ptr, offsets_ptr, i, j, ok)
+            r = tl.load(radius_ptr + k, mask=ok, other=1.0)
+            ok = ok & (r > closed)
+            # Shared: the pair does not depend on the state (cx, cy unused).
+            bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
+                geom_ptr, r, hx, hy, ax, ay, vx, vy, tl.load(row0 + 0), tl.load(row0 + 1), m,
+                mu, level_scale, SHARED, OPTICS)
+            ok = ok & (area > 0.0)
+            # Per state: the weight's and the pupil share's coefficients on the sample.
+            g_w = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s area share_s norm_s
+            g_a = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s slope_s norm_s
+            for s in range(_bound(s_first), _bound(s_last)):
+                fx, fy, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra,
+                                              SHARED)
+                srow = states_ptr + s * 8
+                seen = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
+                if not SHARED:
+                    keep = tl.load(srow + 7)
+                    seen = seen & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy) < keep * keep)
+                po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
+                share, slope = _share(tl.load(srow + 2), lens_r, po)
+                norm = tl.load(srow + 6)
+                g = tl.load(grad_out_ptr + ((s * C + cs[None, :]) * ny + iy[:, None]) * nx
+                            + ix[:, None], mask=cmask & seen[:, None], other=0.0)
+                g_w += g * tl.where(seen, area * share * norm, 0.0)[:, None]
+                g_a += g * tl.where(seen, slope * norm, 0.0)[:, None]
+            used = ok & (tl.sum(tl.abs(g_w) + tl.abs(g_a), axis=1) != 0.0)
+            value, level_slope = _sample(stack_ptr, col, rw, level, used, L, H, W, C, CP)
+            # The sample read is the stack's times the emission weight.
+            value = value * emission[:, None]
+            level_slope = level_slope * emission[:, None]
+            g_area = tl.sum(g_a * value, axis=1)
+            g_level = tl.sum(g_w * level_slope, axis=1)
+            tl.atomic_add(grad_radius_ptr + k, g_area * darea + g_level * lscale * dlevel,
+                          mask=used, sem="relaxed")
+            if WANT_STACK:
+                _scatter(grad_stack_ptr, col, rw, level, g_w * emission[:, None], used, L, H, W,
+                         C, CP)
+
+
+def _launch_args(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
+                 states: torch.Tensor, geometry: torch.Tensor, offsets: torch.Tensor
+                 ) -> tuple[Any, ...]:
+    for name, value in (("radius", radius), ("vx", vx), ("vy", vy), ("states", states),
+                        ("geometry", geometry), ("offsets", offsets)):
+        if value.dtype != torch.float64 or not value.is_contiguous():
+            raise TypeError(f"{name} must be a contiguous float64 tensor; got {value.dtype}.")
+    if stack.dim() != 4 or not stack.is_contiguous():
+        raise TypeError("stack must be a contiguous (L, H, W, C) tensor (channels last).")
+    return radius, offsets, stack, vx, vy, states, geometry
+
+
+def _box(outer_mm: float, pitch_mm: float) -> int:
+    """Holes per axis that a disk of radius outer_mm can span from its first one."""
+    return math.floor(2 * outer_mm / pitch_mm) + 2
+
+
+def _walk(states: np.ndarray, geometry: np.ndarray, margin: float, extra: float, shared: bool,
+          union: bool) -> tuple[int, int]:
+    """Box (rows, columns) of holes each lane walks: one state's disk, or (union) the disk
+    around every state's, as `_span` places them."""
+    outer = (states[:, 2] + margin) if shared else (states[:, 7] + extra)
+    spread = np.ptp(states[:, :2], axis=0) if union else np.zeros(2)
+    return (_box(float(outer.max() + spread[1] / 2), float(geometry[3])),
+            _box(float(outer.max() + spread[0] / 2), float(geometry[2])))
+
+
+def view_forward(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
+                 states: np.ndarray, geometry: np.ndarray, offsets: torch.Tensor, extra: float,
+                 shared: bool, margin: float, closed: float) -> torch.Tensor:
+    """Views (S, C, ny, nx) float64 (see `aperture_fab.optics.kernels.view_forward`): radius
+    (K,), offsets (K, 2), vx (nx,), vy (ny,) float64 and the stack (L, H, W, C) on one device;
+    states (S, 8) and geometry as numpy float64."""
+    device = stack.device
+    rows = torch.as_tensor(states, dtype=torch.float64, device=device).contiguous()
+    geom = torch.as_tensor(geometry, dtype=torch.float64, device=device).contiguous()
+    args = _launch_args(radius, stack, vx, vy, rows, geom, offsets)
+    levels, height, width, channels = stack.shape
+    out = torch.empty((len(states), channels, len(vy), len(vx)), dtype=torch.float64,
+                      device=device)
+    box_r, box_c = _walk(states, geometry, margin, extra, shared, union=False)
+    grid = (triton.cdiv(len(vx) * len(vy), BLOCK), len(states))
+    _forward_kernel[grid](
+        *args, out, extra, margin, closed, len(vx), len(vy), levels, height, width, box_r, box_c,
+        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=shared,
+        OPTICS=bool(geometry[17] > 0 or geometry[19] > 0), num_warps=NUM_WARPS)
+    return out
+
+
+def view_backward(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
+                  states: np.ndarray, geometry: np.ndarray, offsets: torch.Tensor, extra: float,
+                  shared: bool, margin: float, closed: float, grad_out: torch.Tensor,
+                  want_stack: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Gradients of sum(grad_out * view) (grad_out (S, C, ny, nx) float64, contiguous) in the
+    radii (K,) float64 and, when want_stack, the stack (L, H, W, C) float64."""
+    device = stack.device
+    rows = torch.as_tensor(states, dtype=torch.float64, device=device).contiguous()
+    geom = torch.as_tensor(geometry, dtype=torch.float64, device=device).contiguous()
+    args = _launch_args(radius, stack, vx, vy, rows, geom, offsets)
+    levels, height, width, channels = stack.shape
+    grad_radius = torch.zeros_like(radius)
+    grad_stack = torch.zeros(stack.shape if want_stack else (1,), dtype=torch.float64,
+                             device=device)
+    box_r, box_c = _walk(states, geometry, margin, extra, shared, union=shared)
+    grid = (triton.cdiv(len(vx) * len(vy), BLOCK), 1 if shared else len(states))
+    _backward_kernel[grid](
+        *args, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack, extra, margin,
+        closed, len(vx), len(vy), levels, height, width, box_r, box_c, len(states),
+        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=shared,
+        OPTICS=bool(geometry[17] > 0 or geometry[19] > 0), WANT_STACK=want_stack,
+        num_warps=NUM_WARPS)
+    return grad_radius, (grad_stack if want_stack else None)

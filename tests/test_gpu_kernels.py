@@ -1,0 +1,119 @@
+"""The fused GPU kernels (aperture_fab.optics.gpu_kernels) against the fused CPU kernels: views
+and gradients (radii and display), for eye states that share their display samples (all at
+infinity) and states that do not, with displaced holes, tilted hole axes, display-side optics
+and a float32 stack.
+
+Without CUDA the kernels run in Triton's interpreter (TRITON_INTERPRET=1, set here before the
+module is imported, as Triton reads it then) on small scenes; on a machine with CUDA they are
+compiled and run there, and larger scenes are compared too. Triton is not a dependency of the
+CPU install: where it is missing these tests skip, unless APERTURE_FAB_REQUIRE_TRITON=1 (set by
+.ci/run, which installs it) makes that a failure.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+import torch
+from test_display_optics import with_display
+from test_kernels import states, views_and_grads
+from test_model import make_scene
+
+from aperture_fab.optics.model import Renderer
+
+CUDA = torch.cuda.is_available()
+if not CUDA:
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+if importlib.util.find_spec("triton") is None:
+    if os.environ.get("APERTURE_FAB_REQUIRE_TRITON") == "1":
+        raise ImportError("triton is not installed, and APERTURE_FAB_REQUIRE_TRITON=1 asks for "
+                          "these tests: pip install triton==3.6.0")
+    pytest.skip("triton is not installed (pip install triton==3.6.0 runs these tests on the "
+                "CPU in its interpreter)", allow_module_level=True)
+
+DEVICE = "cuda" if CUDA else "cpu"
+#: Small enough for the interpreter: a 1 mm pupil over 0.25 mm cells walks about 6 x 6 holes.
+SMALL = {"cells": (8, 8), "pupil": 1.0, "view": (8, 8), "pixels": (40, 40), "size": 10.0}
+CASES = {
+    "thin straight": {},
+    "thick chief-ray": {"thickness": 0.3, "axis": "chief_ray"},
+    "thick straight, finite focus": {"thickness": 0.2, "focus": 500.0},
+}
+BATCHES = {
+    "infinity": ([(0.0, 0.0), (0.3, -0.2), (-0.4, 0.3)], [1.0, 0.8, 1.4], [0.0, 0.0, 0.0]),
+    "mixed focus": ([(0.0, 0.0), (0.2, 0.1)], [1.0, 1.2], [0.0, 1.5]),
+}
+DISPLAY_OPTICS = {"cover_glass_mm": 0.5, "emission": "cosine_power", "emission_exponent": 4.0}
+
+
+def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, sparse=False):
+    rng = np.random.default_rng(seed)
+    rows, cols = scene.plate.cells[1], scene.plate.cells[0]
+    a = rng.uniform(0, 0.6, (rows, cols))
+    if sparse:  # most cells closed, as a made plate
+        a = np.where(rng.random((rows, cols)) < 0.3, a, 0.0)
+    pixels = scene.display.pixels
+    display = rng.random((3, pixels[1], pixels[0]))
+    view = scene.eye.view_pixels
+    weight = rng.random((len(batch), 3, view[1], view[0]))
+    got = views_and_grads(Renderer(scene, device=DEVICE, dtype=dtype, backend="triton",
+                                   hole_offset_mm=offsets), a.astype(np.float64),
+                          display, batch, weight)
+    want = views_and_grads(Renderer(scene, dtype=dtype, backend="kernel", hole_offset_mm=offsets),
+                           a, display, batch, weight)
+    assert float(want[0].abs().max()) > 0
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g.cpu(), w, rtol=rtol, atol=rtol * float(w.abs().max()))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+@pytest.mark.parametrize("case", ["thin straight", "thick chief-ray"])
+def test_gpu_kernels_match_the_cpu_kernels(case, batch_name):
+    compare(make_scene(**SMALL, **CASES[case]), states(*BATCHES[batch_name]), None)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("displaced", [False, True])
+@pytest.mark.parametrize("optics", [False, True])
+def test_gpu_kernels_match_the_cpu_kernels_in_every_case(case, batch_name, displaced, optics):
+    scene = make_scene(**SMALL, **CASES[case])
+    if optics:
+        scene = with_display(scene, **DISPLAY_OPTICS)
+    offsets = np.random.default_rng(4).normal(0, 0.05, (8, 8, 2)) if displaced else None
+    compare(scene, states(*BATCHES[batch_name]), offsets)
+
+
+def test_gpu_kernels_with_display_optics_and_displaced_holes():
+    scene = with_display(make_scene(**SMALL, thickness=0.3, axis="chief_ray"), **DISPLAY_OPTICS)
+    offsets = np.random.default_rng(4).normal(0, 0.05, (8, 8, 2))
+    compare(scene, states(*BATCHES["mixed focus"]), offsets)
+
+
+def test_gpu_kernels_in_float32_on_a_sparse_plate():
+    """A float32 stack read as float32, sums in float64: the CPU kernels' figures to float32
+    rounding; most cells closed."""
+    compare(make_scene(**SMALL), states(*BATCHES["infinity"]), None, dtype=torch.float32,
+            rtol=1e-5, sparse=True)
+
+
+@pytest.mark.skipif(not CUDA, reason="compiled Triton kernels need CUDA")
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+def test_gpu_kernels_match_on_a_full_size_plate(batch_name):
+    """The default scene's sizes (80 x 80 cells, 4 mm pupil, 128 x 128 view), on the GPU."""
+    scene = make_scene(cells=(80, 80), pupil=4.0, view=(128, 128), pixels=(400, 400), size=20.0,
+                       thickness=0.3, axis="chief_ray")
+    compare(scene, states(*BATCHES[batch_name]), None, rtol=1e-8)
+
+
+def test_backend_triton_is_refused_where_it_cannot_run(monkeypatch):
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    if CUDA:
+        pytest.skip("CUDA is present: backend triton runs here")
+    with pytest.raises(ValueError, match="backend 'triton' runs on CUDA"):
+        Renderer(make_scene(**SMALL), backend="triton")
