@@ -28,14 +28,16 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 import triton
 import triton.language as tl
+from triton.language.extra import libdevice as _cuda_libdevice
 
-__all__ = ["INTERPRETED", "view_backward", "view_forward"]
+__all__ = ["INTERPRETED", "Walk", "view_backward", "view_forward"]
 
 #: Triton's interpreter runs the kernels (TRITON_INTERPRET=1, read at import as Triton does).
 INTERPRETED = os.environ.get("TRITON_INTERPRET", "0") == "1"
@@ -72,15 +74,15 @@ def _interpreted_bound(x: Any) -> int:
     return int(np.asarray(data).reshape(-1)[0])
 
 
-if INTERPRETED:
-    libdevice: Any = _NumpyLibdevice()
-    _bound: Any = _interpreted_bound
-else:
-    from triton.language.extra import libdevice
+@triton.jit
+def _compiled_bound(x):
+    return x
 
-    @triton.jit
-    def _bound(x):
-        return x
+
+# The kernels call `libdevice.acos` through this module global, which Triton maps to CUDA's
+# libdevice when it compiles them.
+libdevice: Any = _NumpyLibdevice() if INTERPRETED else _cuda_libdevice
+_bound: Any = _interpreted_bound if INTERPRETED else _compiled_bound
 
 
 @triton.jit
@@ -373,7 +375,7 @@ def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
             ok = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
             r = tl.load(radius_ptr + k, mask=ok, other=1.0)
             ok = ok & (r > closed)
-            bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
+            bx, by, lx, ly, area, _, lens_r, col, rw, level, _, emission = _pair(
                 geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale, SHARED,
                 OPTICS)
             if not SHARED:
@@ -467,18 +469,6 @@ def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_
                          C, CP)
 
 
-def _launch_args(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
-                 states: torch.Tensor, geometry: torch.Tensor, offsets: torch.Tensor
-                 ) -> tuple[Any, ...]:
-    for name, value in (("radius", radius), ("vx", vx), ("vy", vy), ("states", states),
-                        ("geometry", geometry), ("offsets", offsets)):
-        if value.dtype != torch.float64 or not value.is_contiguous():
-            raise TypeError(f"{name} must be a contiguous float64 tensor; got {value.dtype}.")
-    if stack.dim() != 4 or not stack.is_contiguous():
-        raise TypeError("stack must be a contiguous (L, H, W, C) tensor (channels last).")
-    return radius, offsets, stack, vx, vy, states, geometry
-
-
 def _box(outer_mm: float, pitch_mm: float) -> int:
     """Holes per axis that a disk of radius outer_mm can span from its first one."""
     return math.floor(2 * outer_mm / pitch_mm) + 2
@@ -494,48 +484,77 @@ def _walk(states: np.ndarray, geometry: np.ndarray, margin: float, extra: float,
             _box(float(outer.max() + spread[0] / 2), float(geometry[2])))
 
 
-def view_forward(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
-                 states: np.ndarray, geometry: np.ndarray, offsets: torch.Tensor, extra: float,
-                 shared: bool, margin: float, closed: float) -> torch.Tensor:
-    """Views (S, C, ny, nx) float64 (see `aperture_fab.optics.kernels.view_forward`): radius
-    (K,), offsets (K, 2), vx (nx,), vy (ny,) float64 and the stack (L, H, W, C) on one device;
-    states (S, 8) and geometry as numpy float64."""
-    device = stack.device
-    rows = torch.as_tensor(states, dtype=torch.float64, device=device).contiguous()
-    geom = torch.as_tensor(geometry, dtype=torch.float64, device=device).contiguous()
-    args = _launch_args(radius, stack, vx, vy, rows, geom, offsets)
-    levels, height, width, channels = stack.shape
-    out = torch.empty((len(states), channels, len(vy), len(vx)), dtype=torch.float64,
-                      device=device)
-    box_r, box_c = _walk(states, geometry, margin, extra, shared, union=False)
-    grid = (triton.cdiv(len(vx) * len(vy), BLOCK), len(states))
-    _forward_kernel[grid](
-        *args, out, extra, margin, closed, len(vx), len(vy), levels, height, width, box_r, box_c,
-        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=shared,
-        OPTICS=bool(geometry[17] > 0 or geometry[19] > 0), num_warps=NUM_WARPS)
+@dataclass(frozen=True)
+class Walk:
+    """What the kernels read, on one device (as `aperture_fab.optics.kernels`' arguments).
+
+    radius: (K,) float64 hole radii, mm. stack: (L, H, W, C) channels-last display stack, in
+    its own dtype. vx, vy: (nx,), (ny,) float64 view directions (tan). states: (S, 8) and
+    geometry: (len(GEOMETRY_FIELDS),) float64 numpy rows. offsets: (K, 2) float64 hole
+    displacements, mm. extra, margin, closed: mm; shared: every state focuses at infinity.
+    """
+
+    radius: torch.Tensor
+    stack: torch.Tensor
+    vx: torch.Tensor
+    vy: torch.Tensor
+    states: np.ndarray
+    geometry: np.ndarray
+    offsets: torch.Tensor
+    extra: float
+    shared: bool
+    margin: float
+    closed: float
+
+    def __post_init__(self) -> None:
+        for name in ("radius", "vx", "vy", "offsets"):
+            value = getattr(self, name)
+            if value.dtype != torch.float64 or not value.is_contiguous():
+                raise TypeError(f"Walk.{name} must be a contiguous float64 tensor; got "
+                                f"{value.dtype}.")
+        if self.stack.dim() != 4 or not self.stack.is_contiguous():
+            raise TypeError("Walk.stack must be a contiguous (L, H, W, C) tensor (channels "
+                            f"last); got shape {tuple(self.stack.shape)}.")
+
+    def _args(self) -> tuple[Any, ...]:
+        device = self.stack.device
+        rows = torch.as_tensor(self.states, dtype=torch.float64, device=device).contiguous()
+        geom = torch.as_tensor(self.geometry, dtype=torch.float64, device=device).contiguous()
+        return self.radius, self.offsets, self.stack, self.vx, self.vy, rows, geom
+
+    @property
+    def _optics(self) -> bool:
+        return bool(self.geometry[17] > 0 or self.geometry[19] > 0)
+
+
+def view_forward(walk: Walk) -> torch.Tensor:
+    """Views (S, C, ny, nx) float64 (see `aperture_fab.optics.kernels.view_forward`)."""
+    levels, height, width, channels = walk.stack.shape
+    nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
+    out = torch.empty((count, channels, ny, nx), dtype=torch.float64, device=walk.stack.device)
+    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
+                         union=False)
+    _forward_kernel[(triton.cdiv(nx * ny, BLOCK), count)](
+        *walk._args(), out, walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width,
+        box_r, box_c, C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK,
+        SHARED=walk.shared, OPTICS=walk._optics, num_warps=NUM_WARPS)
     return out
 
 
-def view_backward(radius: torch.Tensor, stack: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor,
-                  states: np.ndarray, geometry: np.ndarray, offsets: torch.Tensor, extra: float,
-                  shared: bool, margin: float, closed: float, grad_out: torch.Tensor,
-                  want_stack: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Gradients of sum(grad_out * view) (grad_out (S, C, ny, nx) float64, contiguous) in the
-    radii (K,) float64 and, when want_stack, the stack (L, H, W, C) float64."""
-    device = stack.device
-    rows = torch.as_tensor(states, dtype=torch.float64, device=device).contiguous()
-    geom = torch.as_tensor(geometry, dtype=torch.float64, device=device).contiguous()
-    args = _launch_args(radius, stack, vx, vy, rows, geom, offsets)
-    levels, height, width, channels = stack.shape
-    grad_radius = torch.zeros_like(radius)
-    grad_stack = torch.zeros(stack.shape if want_stack else (1,), dtype=torch.float64,
-                             device=device)
-    box_r, box_c = _walk(states, geometry, margin, extra, shared, union=shared)
-    grid = (triton.cdiv(len(vx) * len(vy), BLOCK), 1 if shared else len(states))
-    _backward_kernel[grid](
-        *args, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack, extra, margin,
-        closed, len(vx), len(vy), levels, height, width, box_r, box_c, len(states),
-        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=shared,
-        OPTICS=bool(geometry[17] > 0 or geometry[19] > 0), WANT_STACK=want_stack,
-        num_warps=NUM_WARPS)
+def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
+                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Gradients of sum(grad_out * view) (grad_out (S, C, ny, nx)) in the radii (K,) float64
+    and, when want_stack, the stack (L, H, W, C) float64."""
+    levels, height, width, channels = walk.stack.shape
+    nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
+    grad_radius = torch.zeros_like(walk.radius)
+    grad_stack = torch.zeros(walk.stack.shape if want_stack else (1,), dtype=torch.float64,
+                             device=walk.stack.device)
+    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
+                         union=walk.shared)
+    _backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
+        *walk._args(), grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
+        walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width, box_r, box_c, count,
+        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
+        OPTICS=walk._optics, WANT_STACK=want_stack, num_warps=NUM_WARPS)
     return grad_radius, (grad_stack if want_stack else None)

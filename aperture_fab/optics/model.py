@@ -45,7 +45,8 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.kernels import STATE_FIELDS
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
-__all__ = ["BACKENDS", "Backend", "Renderer", "backend_for", "render_open", "render_open_states"]
+__all__ = ["BACKENDS", "Backend", "Renderer", "Running", "backend_for", "render_open",
+           "render_open_states"]
 
 #: Spacing of the blur-stack radius levels in display pixels (finer: smaller interpolation error).
 LEVEL_SPACING_PX = 0.5
@@ -241,13 +242,15 @@ def _checked_offsets(scene: Scene, offsets: np.ndarray | None) -> np.ndarray | N
 
 Backend = Literal["auto", "kernel", "torch", "triton"]
 BACKENDS: tuple[Backend, ...] = ("auto", "kernel", "torch", "triton")
+#: A backend that runs ("auto" resolved by `backend_for`).
+Running = Literal["kernel", "torch", "triton"]
 #: Pair tables of the torch path kept per renderer (nominal positions and recent eye states).
 TABLE_CACHE = 8
 #: Most grad-stack buffers of the CPU kernel's backward (one per block of view rows).
 MAX_GRAD_BLOCKS_BYTES = 2 * 2**30
 
 
-def backend_for(backend: Backend, device: torch.device) -> Backend:
+def backend_for(backend: Backend, device: torch.device) -> Running:
     """The backend that runs: "auto" is the CPU kernels on the CPU, the Triton kernels on CUDA
     (the torch path where Triton is not installed); a backend that cannot run on `device` is a
     ValueError naming the fix."""
@@ -270,7 +273,7 @@ def backend_for(backend: Backend, device: torch.device) -> Backend:
             raise ValueError(f"backend 'triton' runs on CUDA; device is {device}. Use backend "
                              "'kernel' (or 'auto') on the CPU; TRITON_INTERPRET=1 runs it on "
                              "the CPU for tests.")
-    return backend
+    return cast(Running, backend)
 
 
 class Renderer:
@@ -707,21 +710,21 @@ class _TritonView(torch.autograd.Function):
             renderer, radius, rows, ctx.needs_input_grad[0])
         vx, vy = (torch.as_tensor(v, dtype=torch.float64, device=device)
                   for v in renderer.scene.eye.view_directions())
-        args = (radius.detach().double().contiguous(),
-                stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
-                renderer.kernel_geometry(),
-                torch.as_tensor(offsets, dtype=torch.float64, device=device).contiguous(),
-                extra, shared, margin, closed)
-        ctx.args, ctx.dtype = args, stack.dtype
-        return gpu_kernels.view_forward(*args).to(stack.dtype)
+        walk = gpu_kernels.Walk(
+            radius.detach().double().contiguous(),
+            stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
+            renderer.kernel_geometry(),
+            torch.as_tensor(offsets, dtype=torch.float64, device=device).contiguous(), extra,
+            shared, margin, closed)
+        ctx.walk, ctx.dtype = walk, stack.dtype
+        return gpu_kernels.view_forward(walk).to(stack.dtype)
 
     @staticmethod
     def backward(ctx, grad_view):
         from aperture_fab.optics import gpu_kernels
 
-        want_stack = bool(ctx.needs_input_grad[1])
         grad_radius, grad_stack = gpu_kernels.view_backward(
-            *ctx.args, grad_view.detach().double().contiguous(), want_stack)
+            ctx.walk, grad_view.detach(), bool(ctx.needs_input_grad[1]))
         out_stack = None
         if grad_stack is not None:
             out_stack = grad_stack.permute(3, 0, 1, 2)[None].to(ctx.dtype).contiguous()
