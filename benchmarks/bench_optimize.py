@@ -117,6 +117,11 @@ GOAL_NEAR_EYE_ITERATION_S = 0.2
 GOAL_SINGLE_SPEEDUP = 3.0
 #: ... and a 16-state iteration at most this many times the reference's single-state one.
 GOAL_STATES_RATIO = 2.0
+#: Issue 20's goals on one GPU (H100/H200), per case: seconds per iteration (near-eye with 16
+#: states, nominal, large) or per design (seed-28, 300 iterations); large also within
+#: GOAL_GPU_LARGE_GB of GPU memory.
+GOAL_GPU_S = {"near-eye": 0.005, "nominal": 0.001, "seed-28": 0.3, "large": 0.5}
+GOAL_GPU_LARGE_GB = 16.0
 #: Eye states per iteration of the near-eye case (the goal's figure).
 STATES = 16
 REFERENCE_CASE = "nominal-torch"
@@ -770,10 +775,34 @@ def goals(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     }
 
 
-def goal_lines(g: Mapping[str, Any], results: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    def verdict(met: bool | None) -> str:
-        return "n/a" if met is None else ("met" if met else "NOT met")
+def gpu_goal_lines(results: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Issue 20's GPU goals beside this run's figures (a CUDA run)."""
+    lines = []
+    for name, goal in GOAL_GPU_S.items():
+        if name not in results:
+            continue
+        r = results[name]
+        figure = r.get("design_s") if CASES[name].metric == "design" else r.get("iteration_s")
+        unit = "s/design" if CASES[name].metric == "design" else "s/iteration"
+        met = None if figure is None else figure <= goal
+        line = (f"GPU goal: {name} <= {goal:g} {unit} ({r.get('backend')}): "
+                f"{_number(figure, '.4f')} [{_verdict(met)}]")
+        if name == "large" and r.get("cuda_peak_mib") is not None:
+            gb = r["cuda_peak_mib"] * MIB / GB
+            line += (f"; memory <= {GOAL_GPU_LARGE_GB:g} GB: {gb:.1f} GB "
+                     f"[{_verdict(gb <= GOAL_GPU_LARGE_GB)}]")
+        if "refused" in r or "skipped" in r:
+            line += f" ({r.get('refused') or r.get('skipped')})"
+        lines.append(line)
+    return lines
 
+
+def _verdict(met: bool | None) -> str:
+    return "n/a" if met is None else ("met" if met else "NOT met")
+
+
+def goal_lines(g: Mapping[str, Any], results: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    verdict = _verdict
     states = results.get(STATES_CASE, {}).get("states", "?")
     return [
         f"goal: single-state iteration >= {GOAL_SINGLE_SPEEDUP:g}x faster than the reference "
@@ -886,6 +915,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     reached = goals(results)
     for line in goal_lines(reached, results):
         print(line)
+    if device.type == "cuda":
+        for line in gpu_goal_lines(results):
+            print(line)
     load_end = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     print(f"load average at the end: {_number(load_end[0] if load_end else None, '.1f')}")
     print(NOTES)
