@@ -12,13 +12,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
-__all__ = ["METRIC_KEYS", "gain", "gain_psnr_db", "gains", "metrics", "psnr_db", "summarize"]
+__all__ = ["METRIC_KEYS", "gain", "gain_mse", "gain_mse_states", "gain_psnr_db", "gains", "metrics",
+           "psnr_db", "summarize"]
 
 #: The keys of a metrics dict, in the order reports list them.
 METRIC_KEYS: tuple[str, ...] = ("mse", "psnr_db", "ssim", "light_efficiency")
 
-#: Guards the gain's division for a black view (the same guard as optimize.gain_mse).
+#: Guards the gain's division for a black view.
 GAIN_EPS = 1e-20
 #: SSIM's default Gaussian-free window is 7 x 7; smaller views use the largest odd window that
 #: fits, and views under 3 x 3 get NaN (no local statistics to compare).
@@ -138,3 +140,17 @@ def summarize(per_target: list[dict[str, float]]) -> dict[str, float]:
                 "first."
             )
     return {key: float(np.mean([entry[key] for entry in per_target])) for key in keys}
+
+
+def gain_mse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """MSE between target and view after the view's least-squares gain: shapes, not level."""
+    gain = (view * target).sum() / ((view * view).sum() + GAIN_EPS)
+    return ((gain * view - target) ** 2).mean()
+
+
+def gain_mse_states(views: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """`gain_mse` of each of a batch of views (S, C, ny, nx) against one target: (S,)."""
+    flat = views.reshape(views.shape[0], -1)
+    goal = target.reshape(1, -1)
+    gain = (flat * goal).sum(1, keepdim=True) / ((flat * flat).sum(1, keepdim=True) + GAIN_EPS)
+    return ((gain * flat - goal) ** 2).mean(1)

@@ -33,10 +33,9 @@ import torch
 from aperture_fab.config.config import resolve
 from aperture_fab.fabrication.part import FabricationSettings
 from aperture_fab.fabrication.process import PROCESSES
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import gain_mse
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.validate import layout_fractions

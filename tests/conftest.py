@@ -10,6 +10,8 @@ CLI. Modules that run the optimizer use `pytestmark = pytest.mark.usefixtures("o
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -57,6 +59,21 @@ iterations = {TINY_ITERATIONS}
 device = "cpu"
 min_efficiency = 0.0
 """
+
+
+def require_tool(*names: str, install: str) -> str:
+    """The path of the first of `names` on PATH (or an absolute path that exists). Where none
+    is, the test skips, saying how to install it, unless APERTURE_FAB_REQUIRE_TOOLS=1 (set by
+    .ci/run once it has installed them), which makes a missing tool a failure."""
+    for name in names:
+        found = shutil.which(name) or (name if Path(name).is_absolute() and Path(name).exists()
+                                       else None)
+        if found:
+            return found
+    message = f"{names[0]} is not installed ({install})"
+    if os.environ.get("APERTURE_FAB_REQUIRE_TOOLS") == "1":
+        pytest.fail(message + "; APERTURE_FAB_REQUIRE_TOOLS=1 requires it")
+    pytest.skip(message)
 
 
 def tiny_config(preset: str = "near-eye-nominal", **overrides: Any) -> Config:

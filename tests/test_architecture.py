@@ -1,9 +1,12 @@
 """The package's layering (docs/architecture.md): lower folders never import higher ones, so a
-stage can be read, tested and changed without the jobs above it."""
+stage can be read, tested and changed without the jobs above it; and no module imports itself
+through others (an import circle), imports inside functions included, type-checking-only ones
+not."""
 
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -56,3 +59,95 @@ def test_the_checker_sees_imports_inside_functions(tmp_path: Path) -> None:
     source.write_text("def f():\n    from aperture_fab.pipeline.design_job import design\n"
                       "import aperture_fab.optics.scene\n")
     assert imported_packages(source) == {"pipeline", "optics"}
+
+
+def module_name(path: Path, root: Path = PACKAGE) -> str:
+    parts = list(path.relative_to(root.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _type_checking_only(tree: ast.AST) -> set[int]:
+    """ids of the nodes under `if TYPE_CHECKING:`."""
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for sub in node.body:
+                skip.update(id(n) for n in ast.walk(sub))
+    return skip
+
+
+def imported_modules(path: Path, modules: set[str], root: Path = PACKAGE) -> set[str]:
+    """The package's modules a file imports: `from a.b import c` names module a.b.c where
+    that is one, else a.b (its __init__); relative imports resolved."""
+    name = module_name(path, root)
+    tree = ast.parse(path.read_text())
+    skip = _type_checking_only(tree)
+    here = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = here[:len(here) - (node.level - 1)]
+                base = ".".join([*parent, *([base] if base else [])])
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                found.add(full if full in modules else base)
+    return {m for m in found if m in modules and m != name}
+
+
+def import_circles(root: Path = PACKAGE) -> list[list[str]]:
+    """The strongly connected groups (two modules or more) of the import graph (Tarjan)."""
+    files = {module_name(p, root): p for p in root.rglob("*.py")}
+    graph = {m: imported_modules(p, set(files), root) for m, p in files.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10 * len(graph)))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return circles
+
+
+def test_no_import_circles() -> None:
+    assert import_circles() == []
+
+
+def test_the_circle_finder_sees_circles_through_functions_but_not_type_checking(
+        tmp_path: Path) -> None:
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from pkg.b import f\n")
+    (package / "b.py").write_text("def f():\n    from pkg import c\n")
+    (package / "c.py").write_text("from . import a\n")
+    (package / "d.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                  "    from pkg.e import x\n")
+    (package / "e.py").write_text("from pkg.d import y\n")
+    assert import_circles(package) == [["pkg.a", "pkg.b", "pkg.c"]]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_tool
 
 from aperture_fab.cli import main
 from aperture_fab.config.presets import PHOTOMASK_EMULSION_MM
@@ -316,9 +317,8 @@ def test_the_command_refuses_an_out_that_is_not_html(designed: Path, tmp_path: P
 
 @pytest.mark.slow
 def test_the_sheet_prints_on_a4_in_headless_chromium(designed: Path, tmp_path: Path) -> None:
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    if browser is None:
-        pytest.skip("headless Chromium is not installed (Debian: apt-get install -y chromium)")
+    browser = require_tool("chromium", "chromium-browser",
+                           install="Debian: apt-get install -y chromium")
     page = tmp_path / "assembly.html"
     page.write_text((designed / ASSEMBLY_NAME).read_text())
     pdf, png = tmp_path / "sheet.pdf", tmp_path / "sheet.png"

@@ -22,8 +22,8 @@ import aperture_fab
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Libraries that the light commands must not import.
-HEAVY = ("torch", "matplotlib", "trimesh", "scipy", "skimage", "ezdxf", "lxml", "manifold3d",
-         "embreex", "tqdm", "PIL")
+HEAVY = ("torch", "matplotlib", "scipy", "skimage", "ezdxf", "lxml", "manifold3d", "embreex",
+         "tqdm", "PIL")
 
 #: Runs `aperture_fab.cli.main(argv)` (argv from sys.argv), then prints the heavy modules loaded.
 CHILD = f"""\

@@ -8,9 +8,10 @@ import pytest
 import torch
 from test_model import make_scene
 
+from aperture_fab.metrics import gain_mse, gain_mse_states
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import combine_states, gain_mse, gain_mse_states
+from aperture_fab.optimize.optimizer import combine_states
 
 
 def states(offsets, pupils, diopters) -> EyeStates:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 import re
-import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_tool
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -523,18 +523,6 @@ def _run(command: list[str]) -> str:
     return done.stdout + done.stderr
 
 
-def _tool(name: str, package: str) -> str | None:
-    """Path of a command-line tool, installing its Debian package when apt-get is usable."""
-    if shutil.which(name) is None and shutil.which("apt-get") is not None:
-        subprocess.run(
-            ["apt-get", "install", "-y", "--no-install-recommends", package],
-            capture_output=True,
-            timeout=900,
-            check=False,
-        )
-    return shutil.which(name)
-
-
 @pytest.fixture(scope="module")
 def tilted_plate_stl(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, HoleLayout]:
     rng = np.random.default_rng(1)
@@ -548,9 +536,7 @@ def tilted_plate_stl(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Ho
 
 @pytest.mark.slow
 def test_admesh_accepts_the_stl(tilted_plate_stl: tuple[Path, HoleLayout]) -> None:
-    admesh = _tool("admesh", "admesh")
-    if admesh is None:
-        pytest.skip("admesh is not installed and apt-get could not install it")
+    admesh = require_tool("admesh", install="Debian: apt-get install -y admesh")
     path, layout = tilted_plate_stl
     text = _run([admesh, str(path)])
 
@@ -568,9 +554,7 @@ def test_admesh_accepts_the_stl(tilted_plate_stl: tuple[Path, HoleLayout]) -> No
 
 @pytest.mark.slow
 def test_prusa_slicer_calls_the_stl_manifold(tilted_plate_stl: tuple[Path, HoleLayout]) -> None:
-    slicer = _tool("prusa-slicer", "prusa-slicer")
-    if slicer is None:
-        pytest.skip("prusa-slicer is not installed and apt-get could not install it")
+    slicer = require_tool("prusa-slicer", install="Debian: apt-get install -y prusa-slicer")
     path, layout = tilted_plate_stl
     text = _run([slicer, "--loglevel", "1", "--info", str(path)])
     if "manifold" not in text:

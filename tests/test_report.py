@@ -9,7 +9,6 @@ import io
 import json
 import math
 import re
-import shutil
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import tiny_config
+from conftest import require_tool, tiny_config
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -798,10 +797,7 @@ CHROMIUM = "/usr/bin/chromium"
 
 def chromium() -> str:
     """The headless Chromium executable; skips the test when there is none."""
-    browser = shutil.which("chromium") or (CHROMIUM if Path(CHROMIUM).exists() else None)
-    if browser is None:
-        pytest.skip("headless Chromium is not installed (Debian: apt-get install -y chromium)")
-    return browser
+    return require_tool("chromium", CHROMIUM, install="Debian: apt-get install -y chromium")
 
 
 def chromium_image_counts(page: str, folder: Path) -> tuple[int, int]:

@@ -8,11 +8,10 @@ import torch
 from conftest import tiny_config
 
 from aperture_fab.io.images import resample
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
-from aperture_fab.optimize.optimizer import gain_mse
 from aperture_fab.targets import asymmetric_marker
 from aperture_fab.validation.robustness import PERCENTILES, Variant, judge_eyes
 

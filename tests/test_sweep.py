@@ -463,21 +463,6 @@ def test_example_sweep_file_checks() -> None:
         check_plate(fabrication.process, config.scene.plate, config.scene.eye.eye_relief_mm)
 
 
-def _cli_has_sweep() -> bool:
-    import contextlib
-    import io
-
-    try:
-        from aperture_fab.cli import build_parser
-
-        with contextlib.redirect_stderr(io.StringIO()):
-            build_parser().parse_args(["sweep", "x.toml", "--dry-run"])
-    except (SystemExit, ImportError):
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _cli_has_sweep(), reason="`sweep` is not wired into aperture_fab.cli yet")
 def test_cli_main_runs_sweep(sweep_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from aperture_fab.cli import main
 

@@ -14,11 +14,10 @@ from PIL import Image
 
 from aperture_fab.cli import EXIT_BAD_INPUT, main
 from aperture_fab.io.images import resample
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import gain_mse_states
 from aperture_fab.optimize.tracking import solve_display, tracked_views
 from aperture_fab.targets import natural
 from tests.test_imports import CHILD, run_child

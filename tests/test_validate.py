@@ -125,8 +125,9 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
 
     from aperture_fab.config.config import resolve
     from aperture_fab.io.images import prepare_targets
+    from aperture_fab.metrics import gain_mse
     from aperture_fab.optics.model import Renderer
-    from aperture_fab.optimize.optimizer import fit_display, gain_mse
+    from aperture_fab.optimize.optimizer import fit_display
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
@@ -211,9 +212,8 @@ def run_tolerance(fitted_part, position_sigma_mm=0.0, radius_bias_mm=0.0, **sett
 def nominal_psnr(fitted_part, radius_bias_mm=0.0):
     import torch
 
-    from aperture_fab.metrics import psnr_db
+    from aperture_fab.metrics import gain_mse, psnr_db
     from aperture_fab.optics.model import Renderer
-    from aperture_fab.optimize.optimizer import gain_mse
 
     config, targets, fitted, layout = fitted_part
     renderer = Renderer(config.scene, dtype=torch.float64)

@@ -65,6 +65,7 @@ from aperture_fab.optics.scene import (
     Plate,
     Scene,
     display_fov_deg,
+    eyebox_margin_mm,
 )
 
 __all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]
@@ -352,14 +353,6 @@ def _convert(layers: _Layers, key: str) -> Any:
             raise _wrong(key, value, where, "a list of numbers, one per position")
         return tuple(float(w) for w in value)
     raise AssertionError(f"no converter for {key}")  # SECTION_KEYS and the sets above disagree
-
-
-def eyebox_margin_mm(eyebox_mm: tuple[float, float], gaze_deg: float, rotation_mm: float
-                     ) -> tuple[float, float]:
-    """How far (x, y) mm the pupil centre moves off its nominal position: half the eyebox plus
-    the largest gaze shift."""
-    shift = rotation_mm * math.sin(math.radians(gaze_deg))
-    return (eyebox_mm[0] / 2 + shift, eyebox_mm[1] / 2 + shift)
 
 
 def _build(cls: Any, kwargs: dict[str, Any], layers: _Layers) -> Any:

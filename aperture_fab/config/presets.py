@@ -55,7 +55,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-from aperture_fab.optics.scene import Display, display_fov_deg
+from aperture_fab.optics.scene import Display, display_fov_deg, eyebox_margin_mm
 
 __all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_DESCRIPTIONS", "preset_summary"]
 
@@ -259,8 +259,6 @@ def preset_summary(name: str) -> str:
     view_x, view_y = eye["view_pixels"]
     distance_mm = eye["eye_relief_mm"] + plate["thickness_mm"] + plate["gap_mm"]
     if eye["fov_deg"] == "display":
-        from aperture_fab.config.config import eyebox_margin_mm
-
         margin = eyebox_margin_mm(tuple(eye["eyebox_mm"]), eye["gaze_deg"], eye["rotation_mm"])
         fov_x, fov_y = display_fov_deg(display, distance_mm, margin)
         fov = f"the display's field, {fov_x:.1f} x {fov_y:.1f} deg"

@@ -29,6 +29,7 @@ __all__ = [
     "Eye",
     "Scene",
     "display_fov_deg",
+    "eyebox_margin_mm",
 ]
 
 HoleAxis = Literal["straight", "chief_ray"]
@@ -428,3 +429,11 @@ class Scene:
     def pinhole_height_mm(self) -> float:
         """Effective pinhole height above the display: gap + thickness / 2."""
         return self.plate.gap_mm + self.plate.thickness_mm / 2
+
+
+def eyebox_margin_mm(eyebox_mm: tuple[float, float], gaze_deg: float, rotation_mm: float
+                     ) -> tuple[float, float]:
+    """How far (x, y) mm the pupil centre moves off its nominal position: half the eyebox plus
+    the largest gaze shift."""
+    shift = rotation_mm * math.sin(math.radians(gaze_deg))
+    return (eyebox_mm[0] / 2 + shift, eyebox_mm[1] / 2 + shift)

@@ -8,7 +8,8 @@ so a fresh clone's first design starts optimizing at once:
     python -m aperture_fab.optics.warm
 
 It renders a tiny plate forward and backward for each precision the optimizer offers, which
-compiles (or loads) exactly the signatures a design uses.
+compiles (or loads) exactly the signatures a design uses; on a machine with CUDA and Triton,
+the GPU kernels as well.
 """
 
 from __future__ import annotations
@@ -27,19 +28,28 @@ _VIEW = 4
 
 
 def warm_kernels(dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64)) -> float:
-    """Compile (or load from the cache) the kernels for each stack dtype; returns seconds."""
+    """Compile (or load from the cache) the kernels for each stack dtype; returns seconds.
+    Where CUDA and Triton are present, the GPU kernels too (Triton's cache, ~/.triton): an RGB
+    and a one-channel (light efficiency) display, forward and backward."""
     from aperture_fab.config.config import resolve
-    from aperture_fab.optics.model import Renderer
+    from aperture_fab.optics.model import Renderer, backend_for
 
     config = resolve("near-eye-nominal", None, {
         "plate.cells": [_CELLS, _CELLS], "display.pixels": [_PIXELS, _PIXELS],
         "display.width_mm": 1.2, "display.height_mm": 1.2, "eye.view_pixels": [_VIEW, _VIEW]})
+    where = ["cpu"]
+    if torch.cuda.is_available() and backend_for("auto", torch.device("cuda")) == "triton":
+        where.append("cuda")
     start = time.perf_counter()
-    for dtype in dtypes:
-        renderer = Renderer(config.scene, device="cpu", dtype=dtype, backend="kernel")
-        a = torch.full((_CELLS, _CELLS), 0.1, dtype=dtype, requires_grad=True)
-        display = torch.full((3, _PIXELS, _PIXELS), 0.5, dtype=dtype, requires_grad=True)
-        renderer.render(a, display).sum().backward()
+    for device in where:
+        for dtype in dtypes:
+            renderer = Renderer(config.scene, device=device, dtype=dtype)
+            for channels in (3, 1):
+                a = torch.full((_CELLS, _CELLS), 0.1, dtype=dtype, device=device,
+                               requires_grad=True)
+                display = torch.full((channels, _PIXELS, _PIXELS), 0.5, dtype=dtype,
+                                     device=device, requires_grad=True)
+                renderer.render(a, display).sum().backward()
     return time.perf_counter() - start
 
 

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.fabrication.quantize import MadeSizes
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.as_made import MadeDraw, MadeOptics, draw_errors, made_views
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
@@ -34,8 +34,6 @@ __all__ = [
     "Interrupted",
     "DivergedError",
     "combine_states",
-    "gain_mse",
-    "gain_mse_states",
     "position_states",
     "training_states",
     "optimize",
@@ -96,12 +94,6 @@ class DivergedError(FloatingPointError):
     """The loss became NaN or infinite."""
 
 
-def gain_mse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """MSE between target and view after the view's least-squares gain: shapes, not level."""
-    gain = (view * target).sum() / ((view * view).sum() + 1e-20)
-    return ((gain * view - target) ** 2).mean()
-
-
 def _logit(x: torch.Tensor) -> torch.Tensor:
     x = x.clamp(1e-4, 1 - 1e-4)
     return torch.log(x) - torch.log1p(-x)
@@ -159,14 +151,6 @@ def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
             below, above = levels[index - 1], levels[index]
             snap = torch.where(a - below <= above - a, below, above)
     return a + (snap - a).detach()
-
-
-def gain_mse_states(views: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """`gain_mse` of each of a batch of views (S, C, ny, nx) against one target: (S,)."""
-    flat = views.reshape(views.shape[0], -1)
-    goal = target.reshape(1, -1)
-    gain = (flat * goal).sum(1, keepdim=True) / ((flat * flat).sum(1, keepdim=True) + 1e-20)
-    return ((gain * flat - goal) ** 2).mean(1)
 
 
 def position_states(eye: Eye) -> EyeStates:

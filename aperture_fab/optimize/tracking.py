@@ -67,10 +67,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import gain_mse_states
 
 __all__ = ["DEFAULT_ITERATIONS", "Solver", "TrackedViews", "solve_display", "tracked_views"]
 

@@ -38,7 +38,7 @@ from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets, resample
 from aperture_fab.io.manifest import publish, remove_listed, staging
-from aperture_fab.metrics import gain, psnr_db
+from aperture_fab.metrics import gain, gain_mse, psnr_db
 from aperture_fab.optics.as_made import white_transmission
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
@@ -49,7 +49,6 @@ from aperture_fab.optimize.optimizer import (
     Interrupted,
     MaskDesign,
     fit_display,
-    gain_mse,
     initial_design,
     optimize,
     training_states,

@@ -182,7 +182,8 @@ def dry_run(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run the sweep; errors in the sweep file raise ValueError (the CLI prints them)."""
-    from aperture_fab.sweep.run import RunOptions, require, run_sweep
+    from aperture_fab.sweep.run import RunOptions, run_sweep
+    from aperture_fab.sweep.settings import require
     from aperture_fab.sweep.spec import load_spec
 
     _check_args(args)

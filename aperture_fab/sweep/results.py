@@ -192,7 +192,7 @@ def _csv(rows: list[dict[str, Any]], columns: list[str]) -> str:
 
 
 def _parquet(rows: list[dict[str, Any]], columns: list[str]) -> bytes:
-    from aperture_fab.sweep.run import require
+    from aperture_fab.sweep.settings import require
 
     pa = require("pyarrow")
     pq = require("pyarrow.parquet")

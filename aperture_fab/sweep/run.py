@@ -46,6 +46,7 @@ from aperture_fab.sweep.schedule import (
     SerialExecutor,
     lost_record,
 )
+from aperture_fab.sweep.settings import require, resolve_point
 from aperture_fab.sweep.spec import (
     Choice,
     FloatRange,
@@ -65,45 +66,14 @@ from aperture_fab.sweep.worker import (
 )
 
 __all__ = ["Backend", "RunOptions", "Job", "SweepOutcome", "run_sweep", "load_record",
-           "require", "resolve_point", "Resolver", "preflight", "Preflight", "POINT_FILE", "EXTRA"]
+           "Resolver", "preflight", "Preflight", "POINT_FILE"]
 
 Backend = Literal["ray", "serial"]
 Status = Literal["ok", "failed", "lost"]
 STATUSES: tuple[Status, ...] = ("ok", "failed", "lost")
 POINTS_DIR = "points"
-EXTRA = "pip install 'aperture-fab[sweep]'"
 #: Every table (with the page's plot) is rewritten at most this often while a sweep runs.
 REFRESH_S = 60.0
-
-
-def require(module: str) -> Any:
-    """Import an optional dependency, or say which extra installs it."""
-    import importlib
-
-    try:
-        return importlib.import_module(module)
-    except ImportError as err:
-        raise ImportError(f"the sweep needs {module.split('.')[0]}, which is not installed: "
-                          f"{EXTRA}") from err
-
-
-def _stage_settings(extra: Any) -> tuple[Any, Any]:
-    """Fabrication and validation settings from a config's extra tables ([process],
-    [fabrication], [validation])."""
-    from aperture_fab.fabrication.part import fabrication_settings
-    from aperture_fab.validation.validate import validation_settings
-
-    return fabrication_settings(extra), validation_settings(extra)
-
-
-def resolve_point(preset: str | None, base_file: Mapping[str, Any] | None,
-                  overrides: Mapping[str, Any]) -> tuple[Any, Any, Any]:
-    """(Config, FabricationSettings, ValidationSettings) of a point; raises what resolve does."""
-    from aperture_fab.config import resolve
-
-    config = resolve(preset, base_file, overrides, file_source="the [sweep] config file")
-    fabrication, validation = _stage_settings(config.extra)
-    return config, fabrication, validation
 
 
 class Resolver:

@@ -143,7 +143,7 @@ def run_point(job: Job, target_files: TargetFiles | None = None
     store (None: read job.targets, this process sees them). Errors become a failed record;
     Ctrl-C propagates."""
     from aperture_fab.pipeline import run_design
-    from aperture_fab.sweep.run import resolve_point
+    from aperture_fab.sweep.settings import resolve_point
 
     start, cpu_start = time.perf_counter(), time.process_time()
     shared = shares_out(job)

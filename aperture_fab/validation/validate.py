@@ -59,14 +59,13 @@ from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.io.images import resample
-from aperture_fab.metrics import gain_psnr_db, psnr_db
+from aperture_fab.metrics import gain_mse, gain_psnr_db, psnr_db
 from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer, render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
-from aperture_fab.optimize.optimizer import gain_mse
 from aperture_fab.validation.made_part import MADE_COPIES, made_part_block
 from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
