@@ -130,10 +130,34 @@ def test_sampling_is_deterministic_per_seed_and_iteration() -> None:
         iteration_seed(0, -1)
 
 
+def test_stratified_sets_are_random_draws_that_spread_evenly() -> None:
+    """The optimizer's per-iteration set: deterministic per seed, a fresh set per seed, and
+    unbiased (pooled over seeds its pupil sizes and positions have the distribution's means),
+    while the mean over a set of 8 is much less noisy than over 8 independent draws."""
+    a, b = NEAR_EYE.stratified(8, 5), NEAR_EYE.stratified(8, 5)
+    np.testing.assert_array_equal(a.offset_mm, b.offset_mm)
+    assert not np.array_equal(a.offset_mm, NEAR_EYE.stratified(8, 6).offset_mm)
+    assert np.allclose(a.weight, 1 / 8)
+    seeds = [iteration_seed(0, i) for i in range(400)]
+    pooled = EyeStates.concat([NEAR_EYE.stratified(8, s) for s in seeds])
+    independent = EyeStates.concat([NEAR_EYE.sample(100_000, 1)])
+    assert abs(pooled.pupil_mm.mean() - independent.pupil_mm.mean()) < 0.02
+    assert np.all(np.abs(pooled.offset_mm.mean(0)) < 0.03)
+
+    def noise(draw: Any) -> np.ndarray:  # std over seeds of a set's mean x, y and pupil
+        means = [np.append(states.offset_mm.mean(0), states.pupil_mm.mean())
+                 for states in (draw(8, s) for s in seeds)]
+        return np.std(means, axis=0)
+
+    # Measured: 0.46, 0.45 and 0.66 of the independent draws' noise.
+    assert np.all(noise(NEAR_EYE.stratified) < [0.6, 0.6, 0.8] * noise(NEAR_EYE.sample))
+
+
 @settings(max_examples=60, deadline=None)
 @given(dist=distributions(), seed=st.integers(0, 2**32 - 1))
 def test_samples_lie_inside_the_eyebox_and_the_ranges(dist: EyeDistribution, seed: int) -> None:
-    for states in (dist.sample(64, seed), dist.evaluation_states(64, seed % 5)):
+    for states in (dist.sample(64, seed), dist.evaluation_states(64, seed % 5),
+                   dist.stratified(16, seed)):
         assert inside_eyebox(dist, box_offsets(dist, states)).all()
         assert np.all(np.hypot(*states.gaze_deg.T) <= dist.gaze_deg * (1 + 1e-12))
         lo, hi = dist.pupil_range_mm

@@ -18,13 +18,12 @@ from hypothesis import strategies as st
 import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.config.config import Config
 from aperture_fab.io.images import resample
-from aperture_fab.metrics import psnr_db
+from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import (
     DivergedError,
     Interrupted,
     MaskDesign,
-    gain_mse,
     initial_design,
     optimize,
 )

@@ -2,8 +2,8 @@
 
 The loss (docs/design.md): the MSE between the target and the view scaled by its least-squares gain,
 averaged over targets, plus an optional light-efficiency term, per eye state; each iteration
-draws its eye states afresh from the eye distribution (`aperture_fab.optics.eyes`) and takes their
-expected loss, or the mean over the worst share of them (`tail_share`).
+draws its eye states afresh from the eye distribution (`aperture_fab.optics.eyes`, a stratified
+set) and takes their expected loss, or the mean over the worst share of them (`tail_share`).
 """
 
 from __future__ import annotations
@@ -165,13 +165,15 @@ def position_states(eye: Eye) -> EyeStates:
 
 def training_states(scene: Scene, settings: OptimizerSettings, iteration: int) -> EyeStates:
     """The eye states iteration `iteration` is judged at: `settings.eye_states` states drawn
-    afresh from the eye distribution, seeded by (settings.seed, iteration) so that a resumed
-    run draws the same ones; or, when the distribution is a single point, the scene's fixed
-    eyebox positions."""
+    afresh from the eye distribution as a stratified set (`EyeDistribution.stratified`: even
+    over the distribution, unbiased, less noisy than independent draws: +0.3 dB p10 as made on
+    the photo, README), seeded by (settings.seed, iteration) so that a resumed run draws the
+    same ones; or, when the distribution is a single point, the scene's fixed eyebox
+    positions."""
     distribution = distribution_of(scene.eye)
     if distribution.is_point:
         return position_states(scene.eye)
-    return distribution.sample(settings.eye_states, iteration_seed(settings.seed, iteration))
+    return distribution.stratified(settings.eye_states, iteration_seed(settings.seed, iteration))
 
 
 def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: float
