@@ -117,3 +117,47 @@ def test_backend_triton_is_refused_where_it_cannot_run(monkeypatch):
         pytest.skip("CUDA is present: backend triton runs here")
     with pytest.raises(ValueError, match="backend 'triton' runs on CUDA"):
         Renderer(make_scene(**SMALL), backend="triton")
+
+
+#: Compiles kernel variants for a Hopper GPU (sm_90) with Triton's own ptxas: no GPU needed.
+COMPILE = """
+import sys
+import triton
+from triton.backends.compiler import GPUTarget
+from triton.compiler import ASTSource
+from aperture_fab.optics import gpu_kernels as g
+
+common = {"radius_ptr": "*fp64", "offsets_ptr": "*fp64", "stack_ptr": sys.argv[1],
+          "vx_ptr": "*fp64", "vy_ptr": "*fp64", "states_ptr": "*fp64", "geom_ptr": "*fp64"}
+sizes = {"extra": "fp64", "margin": "fp64", "closed": "fp64", "nx": "i32", "ny": "i32",
+         "L": "i32", "H": "i32", "W": "i32", "box_r": "i32", "box_c": "i32"}
+shared, optics = sys.argv[2] == "shared", sys.argv[3] == "optics"
+flags = {"C": 3, "CP": 4, "BLOCK": g.BLOCK, "SHARED": shared, "OPTICS": optics}
+forward = {**common, "out_ptr": "*fp64", **sizes, **{k: "constexpr" for k in flags}}
+backward = {**common, "grad_out_ptr": "*fp64", "grad_radius_ptr": "*fp64",
+            "grad_stack_ptr": "*fp64", **sizes, "n_states": "i32",
+            **{k: "constexpr" for k in [*flags, "WANT_STACK"]}}
+target = GPUTarget("cuda", 90, 32)
+for kernel, signature, constants in ((g._forward_kernel, forward, flags),
+                                     (g._backward_kernel, backward,
+                                      {**flags, "WANT_STACK": True})):
+    triton.compile(ASTSource(kernel, signature, constexprs=constants), target=target,
+                   options={"num_warps": g.NUM_WARPS})
+print("compiled")
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stack, shared, optics", [("*fp32", "shared", "plain"),
+                                                   ("*fp64", "focused", "optics")])
+def test_the_kernels_compile_for_a_hopper_gpu(stack, shared, optics, tmp_path):
+    """What the interpreter cannot check (Triton's compile-time rules: constexpr globals,
+    types, the libdevice calls) is checked by compiling for sm_90 here, without a GPU."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    env["TRITON_CACHE_DIR"] = str(tmp_path)  # compile afresh, never from an earlier run
+    done = subprocess.run([sys.executable, "-c", COMPILE, stack, shared, optics], env=env,
+                          capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0 and "compiled" in done.stdout, done.stderr[-3000:]

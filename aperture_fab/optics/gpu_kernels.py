@@ -86,17 +86,19 @@ _bound: Any = _interpreted_bound if INTERPRETED else _compiled_bound
 
 
 @triton.jit
-def _lens(r1, m, d):
-    """Area of two disks (radii r1 and |m| r1, centres d apart) and its derivative in r1."""
-    # Equal disks (infinite focus): one acos.
+def _lens_equal(r1, d):
+    """`_lens` of two equal disks (infinite focus): one acos."""
     half = tl.minimum(d / (2.0 * r1), 1.0)
     theta = libdevice.acos(half)
-    eq_area = 2.0 * r1 * r1 * theta - d * r1 * tl.sqrt(tl.maximum(1.0 - half * half, 0.0))
-    eq_darea = 4.0 * r1 * theta
+    area = 2.0 * r1 * r1 * theta - d * r1 * tl.sqrt(tl.maximum(1.0 - half * half, 0.0))
     apart = d >= 2.0 * r1
-    eq_area = tl.where(apart, 0.0, eq_area)
-    eq_darea = tl.where(apart, 0.0, eq_darea)
-    # Unequal disks.
+    return tl.where(apart, 0.0, area), tl.where(apart, 0.0, 4.0 * r1 * theta)
+
+
+@triton.jit
+def _lens(r1, m, d):
+    """Area of two disks (radii r1 and |m| r1, centres d apart) and its derivative in r1."""
+    eq_area, eq_darea = _lens_equal(r1, d)
     am = tl.abs(m)
     r2 = am * r1
     small = tl.minimum(r1, r2)
@@ -169,7 +171,7 @@ def _pair(geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale,
         # The top-face disk seen along v lands t (a + v) away from the bottom one.
         dx = t * (ax + vx)
         dy = t * (ay + vy)
-        area, darea = _lens(r, r * 0.0 + 1.0, tl.sqrt(dx * dx + dy * dy))
+        area, darea = _lens_equal(r, tl.sqrt(dx * dx + dy * dy))
         lx = bx + dx / 2.0
         ly = by + dy / 2.0
         wx = lx + gap * vx
