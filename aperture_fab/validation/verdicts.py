@@ -9,6 +9,7 @@ the page (aperture_fab.validation.report_html) and the terminal show them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -19,7 +20,8 @@ from aperture_fab.validation.variants import EYE_BASELINES
 
 __all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
            "YIELD_PASS", "YIELD_WARN", "FixPlan", "describe_distribution", "eye_verdict",
-           "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix", "verdicts"]
+           "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix", "verdicts",
+           "yield_interval"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
 HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
@@ -166,14 +168,34 @@ def eye_verdict(report: Mapping[str, Any]) -> Verdict:
                    "baseline judged the same way, for every target.")
 
 
+#: z of a two-sided 90 % interval: the tolerance yield is given with its Wilson score interval.
+YIELD_INTERVAL_Z = 1.645
+
+
+def yield_interval(share: float, samples: int, z: float = YIELD_INTERVAL_Z
+                   ) -> tuple[float, float]:
+    """Wilson score interval (lo, hi) of a yield `share` measured over `samples` draws: a
+    16-draw yield of 0.94 may well be 0.8 (E. B. Wilson 1927, JASA 22:209)."""
+    if samples <= 0:
+        return 0.0, 1.0
+    scale = 1 + z * z / samples
+    centre = (share + z * z / (2 * samples)) / scale
+    half = z * math.sqrt(share * (1 - share) / samples + z * z / (4 * samples**2)) / scale
+    # It always holds the share; min/max keep that true through rounding at 0 and 1.
+    return max(0.0, min(share, centre - half)), min(1.0, max(share, centre + half))
+
+
 def tolerance_verdict(tolerance: Mapping[str, Any],
                       optimizer: Mapping[str, Any] | None = None) -> Verdict:
     """Pass when at least YIELD_PASS of the tolerance samples score above the threshold, warn
     from YIELD_WARN, fail below. optimizer: the design's optimizer settings (report.json's
     config.optimizer), so that a fix it already applied is not proposed."""
     threshold, share = tolerance["threshold_db"], tolerance["yield"]
+    lo, hi = yield_interval(share, int(tolerance["samples"]))
     text = (f"{100 * share:.0f} % of {tolerance['samples']} parts drawn with the process's "
-            f"tolerances score above {threshold:.1f} dB.")
+            f"tolerances score above {threshold:.1f} dB (90 % interval of the yield "
+            f"{100 * lo:.0f} to {100 * hi:.0f} %; more draws narrow it: [validation] "
+            "tolerance_samples).")
     low, median = tolerance["psnr_percentiles"]["5"], tolerance["psnr_percentiles"]["50"]
     if low is not None and median is not None:
         text += f" Median {median:.1f} dB; 1 part in 20 scores below {low:.1f} dB."
