@@ -249,6 +249,20 @@ def _taps(col, row, level, L, H, W):
 
 
 @triton.jit
+def _corner(k: tl.constexpr, o00, o01, o10, o11, w00, w01, w10, w11):
+    """Corner k (0 to 3, unrolled) of `_taps`: its offset and weight."""
+    if k == 0:
+        off, w = o00, w00
+    elif k == 1:
+        off, w = o01, w01
+    elif k == 2:
+        off, w = o10, w10
+    else:
+        off, w = o11, w11
+    return off, w
+
+
+@triton.jit
 def _sample(stack_ptr, col, row, level, ok, L, H, W, C: tl.constexpr, CP: tl.constexpr):
     """Trilinear stack sample (BLOCK, CP) float64 and its slope along the level index."""
     wl, o00, o01, o10, o11, w00, w01, w10, w11 = _taps(col, row, level, L, H, W)
@@ -258,14 +272,7 @@ def _sample(stack_ptr, col, row, level, ok, L, H, W, C: tl.constexpr, CP: tl.con
     lo = tl.zeros(mask.shape, tl.float64)
     hi = tl.zeros(mask.shape, tl.float64)
     for corner in tl.static_range(4):
-        if corner == 0:
-            off, w = o00, w00
-        elif corner == 1:
-            off, w = o01, w01
-        elif corner == 2:
-            off, w = o10, w10
-        else:
-            off, w = o11, w11
+        off, w = _corner(corner, o00, o01, o10, o11, w00, w01, w10, w11)
         ptr = stack_ptr + off[:, None] * C + cs[None, :]
         lo += w[:, None] * tl.load(ptr, mask=mask, other=0.0).to(tl.float64)
         hi += w[:, None] * tl.load(ptr + plane * C, mask=mask, other=0.0).to(tl.float64)
@@ -282,14 +289,7 @@ def _scatter(grad_ptr, col, row, level, g, ok, L, H, W, C: tl.constexpr, CP: tl.
     g_lo = (1.0 - wl)[:, None] * g
     g_hi = wl[:, None] * g
     for corner in tl.static_range(4):
-        if corner == 0:
-            off, w = o00, w00
-        elif corner == 1:
-            off, w = o01, w01
-        elif corner == 2:
-            off, w = o10, w10
-        else:
-            off, w = o11, w11
+        off, w = _corner(corner, o00, o01, o10, o11, w00, w01, w10, w11)
         ptr = grad_ptr + off[:, None] * C + cs[None, :]
         tl.atomic_add(ptr, w[:, None] * g_lo, mask=mask, sem="relaxed")
         tl.atomic_add(ptr + plane * C, w[:, None] * g_hi, mask=mask, sem="relaxed")
@@ -333,6 +333,16 @@ def _in_plate(geom_ptr, i, j, live):
 
 
 @triton.jit
+def _open_hole(geom_ptr, offsets_ptr, radius_ptr, i, j, live, closed):
+    """Hole (i, j) of each lane: whether it is on the plate and open (radius above `closed`),
+    its flat index and radius, and `_hole`'s axis points and slopes."""
+    ok = _in_plate(geom_ptr, i, j, live)
+    k, ux, uy, hx, hy, ax, ay = _hole(geom_ptr, offsets_ptr, i, j, ok)
+    r = tl.load(radius_ptr + k, mask=ok, other=1.0)
+    return ok & (r > closed), k, r, ux, uy, hx, hy, ax, ay
+
+
+@triton.jit
 def _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK: tl.constexpr):
     p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = p < nx * ny
@@ -371,12 +381,10 @@ def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
         i = r_start + dr
         for dc in range(0, _bound(box_c)):
             j = c_start + dc
-            ok = _in_plate(geom_ptr, i, j, live)
-            k, ux, uy, hx, hy, ax, ay = _hole(geom_ptr, offsets_ptr, i, j, ok)
+            ok, _, r, ux, uy, hx, hy, ax, ay = _open_hole(geom_ptr, offsets_ptr, radius_ptr,
+                                                          i, j, live, closed)
             # The walk's disk, around the undisplaced axis (as the CPU kernels' chords).
             ok = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
-            r = tl.load(radius_ptr + k, mask=ok, other=1.0)
-            ok = ok & (r > closed)
             bx, by, lx, ly, area, _, lens_r, col, rw, level, _, emission = _pair(
                 geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale, SHARED,
                 OPTICS)
@@ -430,10 +438,8 @@ def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_
         i = r_start + dr
         for dc in range(0, _bound(box_c)):
             j = c_start + dc
-            ok = _in_plate(geom_ptr, i, j, live)
-            k, ux, uy, hx, hy, ax, ay = _hole(geom_ptr, offsets_ptr, i, j, ok)
-            r = tl.load(radius_ptr + k, mask=ok, other=1.0)
-            ok = ok & (r > closed)
+            ok, k, r, ux, uy, hx, hy, ax, ay = _open_hole(geom_ptr, offsets_ptr, radius_ptr,
+                                                          i, j, live, closed)
             # Shared: the pair does not depend on the state (cx, cy unused).
             bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
                 geom_ptr, r, hx, hy, ax, ay, vx, vy, tl.load(row0 + 0), tl.load(row0 + 1), m,
