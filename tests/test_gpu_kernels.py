@@ -49,7 +49,10 @@ BATCHES = {
 DISPLAY_OPTICS = {"cover_glass_mm": 0.5, "emission": "cosine_power", "emission_exponent": 4.0}
 
 
-def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, sparse=False):
+def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, sparse=False,
+            reference="kernel"):
+    """The triton backend against `reference` ("kernel": the CPU kernels; "torch": the pair
+    tables and grid_sample, on this test's device)."""
     rng = np.random.default_rng(seed)
     rows, cols = scene.plate.cells[1], scene.plate.cells[0]
     a = rng.uniform(0, 0.6, (rows, cols))
@@ -62,8 +65,9 @@ def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, spars
     got = views_and_grads(Renderer(scene, device=DEVICE, dtype=dtype, backend="triton",
                                    hole_offset_mm=offsets), a.astype(np.float64),
                           display, batch, weight)
-    want = views_and_grads(Renderer(scene, dtype=dtype, backend="kernel", hole_offset_mm=offsets),
-                           a, display, batch, weight)
+    where = DEVICE if reference == "torch" else "cpu"
+    want = views_and_grads(Renderer(scene, device=where, dtype=dtype, backend=reference,
+                                    hole_offset_mm=offsets), a, display, batch, weight)
     assert float(want[0].abs().max()) > 0
     for g, w in zip(got, want, strict=True):
         torch.testing.assert_close(g.cpu(), w, rtol=rtol, atol=rtol * float(w.abs().max()))
@@ -103,12 +107,15 @@ def test_gpu_kernels_in_float32_on_a_sparse_plate():
 
 
 @pytest.mark.skipif(not CUDA, reason="compiled Triton kernels need CUDA")
+@pytest.mark.parametrize("reference", ["kernel", "torch"])
 @pytest.mark.parametrize("batch_name", list(BATCHES))
-def test_gpu_kernels_match_on_a_full_size_plate(batch_name):
-    """The default scene's sizes (80 x 80 cells, 4 mm pupil, 128 x 128 view), on the GPU."""
+def test_gpu_kernels_match_on_a_full_size_plate(batch_name, reference):
+    """The default scene's sizes (80 x 80 cells, 4 mm pupil, 128 x 128 view), on the GPU,
+    against the CPU kernels and against the torch path on the same GPU."""
     scene = make_scene(cells=(80, 80), pupil=4.0, view=(128, 128), pixels=(400, 400), size=20.0,
                        thickness=0.3, axis="chief_ray")
-    compare(scene, states(*BATCHES[batch_name]), None, rtol=1e-8)
+    compare(scene, states(*BATCHES[batch_name]), None, reference=reference,
+            rtol=1e-8 if reference == "kernel" else 1e-7)  # the torch path: as tests/test_kernels
 
 
 def test_backend_triton_is_refused_where_it_cannot_run(monkeypatch):

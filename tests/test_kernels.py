@@ -23,11 +23,11 @@ def states(offsets, pupils, diopters) -> EyeStates:
 
 def views_and_grads(renderer: Renderer, a: np.ndarray, display: np.ndarray, batch: EyeStates,
                     weight: np.ndarray):
-    a_t = torch.as_tensor(a).requires_grad_(True)
-    d_t = torch.as_tensor(display).requires_grad_(True)
+    a_t = torch.as_tensor(a, device=renderer.device).requires_grad_(True)
+    d_t = torch.as_tensor(display, device=renderer.device).requires_grad_(True)
     view = renderer.render_states(a_t, renderer.display_stack(d_t), batch)
-    (view * torch.as_tensor(weight)).sum().backward()
-    return view.detach(), a_t.grad, d_t.grad
+    (view * torch.as_tensor(weight, device=renderer.device)).sum().backward()
+    return view.detach().cpu(), a_t.grad.cpu(), d_t.grad.cpu()
 
 
 CASES = {
