@@ -626,8 +626,17 @@ class Terminated(KeyboardInterrupt):
     design saves its checkpoint, every file written so far is whole."""
 
 
-def _terminate(signum: int, frame: Any) -> None:
-    raise Terminated()
+class _Sigterm:
+    """The SIGTERM handler: raises Terminated, and remembers that it did. A raise that lands
+    inside a ctypes callback (Numba's compiler, LLVM) is printed and dropped there, and the
+    command goes on or fails for another reason; main still exits as stopped by SIGTERM."""
+
+    def __init__(self) -> None:
+        self.received = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        self.received = True
+        raise Terminated()
 
 
 def _how_stopped(err: BaseException) -> tuple[str, int]:
@@ -1259,8 +1268,6 @@ def _show_warning(output: Output, default: Any) -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; returns one of the EXIT_* codes (listed in EXIT_CODES_HELP)."""
-    import warnings
-
     parser = build_parser()
     _refuse_empty_arguments(parser, sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)  # a usage error exits with EXIT_USAGE (argparse's 2)
@@ -1275,7 +1282,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                     terminal=sys.stderr.isatty())
     args.output = output
     main_thread = threading.current_thread() is threading.main_thread()
-    before = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    sigterm = _Sigterm()
+    before = signal.signal(signal.SIGTERM, sigterm) if main_thread else None
+    try:
+        code = _run(args, output)
+    finally:
+        if main_thread:  # None: the handler was not set from Python, i.e. the default
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
+    if sigterm.received and code != EXIT_TERMINATED:  # its Terminated was dropped on the way
+        output.interrupted(f"(SIGTERM) during `{args.command}`, which went on past it inside a "
+                           "compiled library; every file already written is whole. Run the "
+                           "command again to finish it.")
+        return EXIT_TERMINATED
+    return code
+
+
+def _run(args: argparse.Namespace, output: Output) -> int:
+    """Run the parsed command; its exit status, with each error class's message."""
+    import warnings
+
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(output, warnings.showwarning)
@@ -1305,9 +1330,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         output.error(_os_error_message(err, args) if isinstance(err, OSError)
                      and code == EXIT_CANNOT_WRITE else str(err))
         return code
-    finally:
-        if main_thread:  # None: the handler was not set from Python, i.e. the default
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
 
 
 if __name__ == "__main__":

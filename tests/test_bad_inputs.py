@@ -289,6 +289,31 @@ def test_out_of_memory_is_a_refusal_not_a_traceback(folder: Path, monkeypatch: p
     assert "`export` ran out of memory" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("then", ["fails", "finishes"])
+def test_a_sigterm_dropped_inside_a_library_still_stops_as_sigterm(
+        folder: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+        then: str) -> None:
+    """A SIGTERM whose Terminated lands in a ctypes callback (Numba's compiler: CI saw it) is
+    printed and dropped there; the command then fails for another reason or finishes, and
+    exits 143 all the same."""
+    import aperture_fab.pipeline.design_job as design_job
+
+    write_part = design_job.write_part
+
+    def signalled(*args: object, **kwargs: object) -> object:
+        with contextlib.suppress(KeyboardInterrupt):  # as the callback's caller drops it
+            signal.raise_signal(signal.SIGTERM)
+        if then == "fails":
+            raise ValueError("the compiler's state after the dropped exception")
+        return write_part(*args, **kwargs)
+
+    monkeypatch.setattr(design_job, "write_part", signalled)
+    assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_TERMINATED
+    err = capsys.readouterr().err
+    assert "(SIGTERM) during `export`" in err and "Traceback" not in err
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("signum", "how", "codes"), [
     # 130, or killed by SIGINT (-2), which a shell reports as 130 too: CPython re-sends SIGINT
