@@ -118,6 +118,23 @@ def test_gpu_kernels_match_on_a_full_size_plate(batch_name, reference):
             rtol=1e-8 if reference == "kernel" else 1e-7)  # the torch path: as tests/test_kernels
 
 
+def test_moved_holes_are_walked_where_they_moved():
+    """`with_hole_offsets` on a renderer that has rendered: the device copy of the offsets is
+    the new one (the triton path keeps its fixed inputs on the device)."""
+    scene = make_scene(**SMALL)
+    rng = np.random.default_rng(5)
+    a = torch.as_tensor(rng.uniform(0, 0.6, (8, 8)), device=DEVICE)
+    display = torch.as_tensor(rng.random((3, 40, 40)), device=DEVICE)
+    offsets = rng.normal(0, 0.05, (8, 8, 2))
+    first = Renderer(scene, device=DEVICE, dtype=torch.float64, backend="triton")
+    still = first.render(a, display)
+    moved = first.with_hole_offsets(offsets).render(a, display)
+    fresh = Renderer(scene, device=DEVICE, dtype=torch.float64, backend="triton",
+                     hole_offset_mm=offsets).render(a, display)
+    torch.testing.assert_close(moved, fresh, rtol=1e-12, atol=0.0)
+    assert not torch.allclose(moved, still)
+
+
 def test_backend_triton_is_refused_where_it_cannot_run(monkeypatch):
     monkeypatch.setenv("TRITON_INTERPRET", "0")
     if CUDA:

@@ -26,6 +26,7 @@ the CPU kernels that way, and on CUDA where there is one.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -343,6 +344,13 @@ def _open_hole(geom_ptr, offsets_ptr, radius_ptr, i, j, live, closed):
 
 
 @triton.jit
+def _any(mask):
+    """Whether any lane of the block has `mask`: a branch on it skips work no lane uses (the
+    lanes of a block are adjacent view pixels, whose windows lie alike in their boxes)."""
+    return tl.max(mask.to(tl.int32), axis=0) > 0
+
+
+@triton.jit
 def _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK: tl.constexpr):
     p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = p < nx * ny
@@ -385,17 +393,20 @@ def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
                                                           i, j, live, closed)
             # The walk's disk, around the undisplaced axis (as the CPU kernels' chords).
             ok = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
-            bx, by, lx, ly, area, _, lens_r, col, rw, level, _, emission = _pair(
-                geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale, SHARED,
-                OPTICS)
-            if not SHARED:
-                ok = ok & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy) < keep * keep)
-            ok = ok & (area > 0.0)
-            po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
-            share, _ = _share(pupil_b, lens_r, po)
-            w = tl.where(ok, area * share * norm * emission, 0.0)
-            value, _ = _sample(stack_ptr, col, rw, level, ok & (w != 0.0), L, H, W, C, CP)
-            acc += w[:, None] * value
+            if _any(ok):  # the box's corners, closed holes
+                # Names, not `_`: a value a Triton branch assigns keeps one type.
+                bx, by, lx, ly, area, _darea, lens_r, col, rw, level, _dlevel, emission = _pair(
+                    geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale, SHARED,
+                    OPTICS)
+                if not SHARED:
+                    ok = ok & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy) < keep * keep)
+                ok = ok & (area > 0.0)
+                po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
+                share, _slope = _share(pupil_b, lens_r, po)
+                w = tl.where(ok, area * share * norm * emission, 0.0)
+                value, _level_slope = _sample(stack_ptr, col, rw, level, ok & (w != 0.0), L, H,
+                                              W, C, CP)
+                acc += w[:, None] * value
     cs = tl.arange(0, CP)
     out = out_ptr + ((s * C + cs[None, :]) * ny + iy[:, None]) * nx + ix[:, None]
     tl.store(out, acc, mask=live[:, None] & (cs < C)[None, :])
@@ -440,41 +451,53 @@ def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_
             j = c_start + dc
             ok, k, r, ux, uy, hx, hy, ax, ay = _open_hole(geom_ptr, offsets_ptr, radius_ptr,
                                                           i, j, live, closed)
-            # Shared: the pair does not depend on the state (cx, cy unused).
-            bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
-                geom_ptr, r, hx, hy, ax, ay, vx, vy, tl.load(row0 + 0), tl.load(row0 + 1), m,
-                mu, level_scale, SHARED, OPTICS)
-            ok = ok & (area > 0.0)
-            # Per state: the weight's and the pupil share's coefficients on the sample.
-            g_w = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s area share_s norm_s
-            g_a = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s slope_s norm_s
+            # Whether some state's disk holds the hole: the union box's corners hold none.
+            inside = tl.zeros((BLOCK,), tl.int1)
             for s in range(_bound(s_first), _bound(s_last)):
-                fx, fy, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra,
-                                              SHARED)
-                srow = states_ptr + s * 8
-                seen = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
-                if not SHARED:
-                    keep = tl.load(srow + 7)
-                    seen = seen & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy) < keep * keep)
-                po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
-                share, slope = _share(tl.load(srow + 2), lens_r, po)
-                norm = tl.load(srow + 6)
-                g = tl.load(grad_out_ptr + ((s * C + cs[None, :]) * ny + iy[:, None]) * nx
-                            + ix[:, None], mask=cmask & seen[:, None], other=0.0)
-                g_w += g * tl.where(seen, area * share * norm, 0.0)[:, None]
-                g_a += g * tl.where(seen, slope * norm, 0.0)[:, None]
-            used = ok & (tl.sum(tl.abs(g_w) + tl.abs(g_a), axis=1) != 0.0)
-            value, level_slope = _sample(stack_ptr, col, rw, level, used, L, H, W, C, CP)
-            # The sample read is the stack's times the emission weight.
-            value = value * emission[:, None]
-            level_slope = level_slope * emission[:, None]
-            g_area = tl.sum(g_a * value, axis=1)
-            g_level = tl.sum(g_w * level_slope, axis=1)
-            tl.atomic_add(grad_radius_ptr + k, g_area * darea + g_level * lscale * dlevel,
-                          mask=used, sem="relaxed")
-            if WANT_STACK:
-                _scatter(grad_stack_ptr, col, rw, level, g_w * emission[:, None], used, L, H, W,
-                         C, CP)
+                _, _, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra,
+                                            SHARED)
+                inside = inside | ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy)
+                                   <= outer * outer)
+            ok = ok & inside
+            if _any(ok):
+                # Shared: the pair does not depend on the state (cx, cy unused).
+                bx, by, lx, ly, area, darea, lens_r, col, rw, level, dlevel, emission = _pair(
+                    geom_ptr, r, hx, hy, ax, ay, vx, vy, tl.load(row0 + 0), tl.load(row0 + 1),
+                    m, mu, level_scale, SHARED, OPTICS)
+                ok = ok & (area > 0.0)
+                # Per state: the weight's and the pupil share's coefficients on the sample.
+                g_w = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s area share_s norm_s
+                g_a = tl.zeros((BLOCK, CP), tl.float64)  # sum_s g_s slope_s norm_s
+                for s in range(_bound(s_first), _bound(s_last)):
+                    fx, fy, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin,
+                                                  extra, SHARED)
+                    srow = states_ptr + s * 8
+                    seen = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
+                    if not SHARED:
+                        keep = tl.load(srow + 7)
+                        seen = seen & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy)
+                                       < keep * keep)
+                    if _any(seen):  # in a shared walk, most states see few of the union's holes
+                        po = tl.sqrt((lx - fx) * (lx - fx) + (ly - fy) * (ly - fy))
+                        share, slope = _share(tl.load(srow + 2), lens_r, po)
+                        norm = tl.load(srow + 6)
+                        g = tl.load(grad_out_ptr + ((s * C + cs[None, :]) * ny + iy[:, None]) * nx
+                                    + ix[:, None], mask=cmask & seen[:, None], other=0.0)
+                        g_w += g * tl.where(seen, area * share * norm, 0.0)[:, None]
+                        g_a += g * tl.where(seen, slope * norm, 0.0)[:, None]
+                used = ok & (tl.sum(tl.abs(g_w) + tl.abs(g_a), axis=1) != 0.0)
+                if _any(used):
+                    value, level_slope = _sample(stack_ptr, col, rw, level, used, L, H, W, C, CP)
+                    # The sample read is the stack's times the emission weight.
+                    value = value * emission[:, None]
+                    level_slope = level_slope * emission[:, None]
+                    g_area = tl.sum(g_a * value, axis=1)
+                    g_level = tl.sum(g_w * level_slope, axis=1)
+                    tl.atomic_add(grad_radius_ptr + k, g_area * darea + g_level * lscale * dlevel,
+                                  mask=used, sem="relaxed")
+                    if WANT_STACK:
+                        _scatter(grad_stack_ptr, col, rw, level, g_w * emission[:, None], used,
+                                 L, H, W, C, CP)
 
 
 def _box(outer_mm: float, pitch_mm: float) -> int:
@@ -498,8 +521,9 @@ class Walk:
 
     radius: (K,) float64 hole radii, mm. stack: (L, H, W, C) channels-last display stack, in
     its own dtype. vx, vy: (nx,), (ny,) float64 view directions (tan). states: (S, 8) and
-    geometry: (len(GEOMETRY_FIELDS),) float64 numpy rows. offsets: (K, 2) float64 hole
-    displacements, mm. extra, margin, closed: mm; shared: every state focuses at infinity.
+    geometry: (len(GEOMETRY_FIELDS),) float64 numpy rows; device_geometry: the same row on the
+    stack's device. offsets: (K, 2) float64 hole displacements, mm. extra, margin, closed: mm;
+    shared: every state focuses at infinity.
     """
 
     radius: torch.Tensor
@@ -508,6 +532,7 @@ class Walk:
     vy: torch.Tensor
     states: np.ndarray
     geometry: np.ndarray
+    device_geometry: torch.Tensor
     offsets: torch.Tensor
     extra: float
     shared: bool
@@ -515,7 +540,7 @@ class Walk:
     closed: float
 
     def __post_init__(self) -> None:
-        for name in ("radius", "vx", "vy", "offsets"):
+        for name in ("radius", "vx", "vy", "offsets", "device_geometry"):
             value = getattr(self, name)
             if value.dtype != torch.float64 or not value.is_contiguous():
                 raise TypeError(f"Walk.{name} must be a contiguous float64 tensor; got "
@@ -524,11 +549,16 @@ class Walk:
             raise TypeError("Walk.stack must be a contiguous (L, H, W, C) tensor (channels "
                             f"last); got shape {tuple(self.stack.shape)}.")
 
+    @functools.cached_property
     def _args(self) -> tuple[Any, ...]:
-        device = self.stack.device
-        rows = torch.as_tensor(self.states, dtype=torch.float64, device=device).contiguous()
-        geom = torch.as_tensor(self.geometry, dtype=torch.float64, device=device).contiguous()
-        return self.radius, self.offsets, self.stack, self.vx, self.vy, rows, geom
+        """The kernels' tensor arguments; the states copied to the device once per walk (the
+        forward's and the backward's), without waiting for the GPU's queue."""
+        rows = torch.from_numpy(np.ascontiguousarray(self.states, dtype=np.float64))
+        if self.stack.is_cuda:
+            rows = rows.pin_memory()
+        rows = rows.to(self.stack.device, non_blocking=True)
+        return (self.radius, self.offsets, self.stack, self.vx, self.vy, rows,
+                self.device_geometry)
 
     @property
     def _optics(self) -> bool:
@@ -543,7 +573,7 @@ def view_forward(walk: Walk) -> torch.Tensor:
     box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
                          union=False)
     _forward_kernel[(triton.cdiv(nx * ny, BLOCK), count)](
-        *walk._args(), out, walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width,
+        *walk._args, out, walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width,
         box_r, box_c, C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK,
         SHARED=walk.shared, OPTICS=walk._optics, num_warps=NUM_WARPS)
     return out
@@ -561,7 +591,7 @@ def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
     box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
                          union=walk.shared)
     _backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
-        *walk._args(), grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
+        *walk._args, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
         walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width, box_r, box_c, count,
         C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
         OPTICS=walk._optics, WANT_STACK=want_stack, num_warps=NUM_WARPS)

@@ -347,6 +347,7 @@ class Renderer:
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], _Pairs] = {}
         self._white: torch.Tensor | None = None
+        self._gpu_constants: tuple[torch.Tensor, ...] | None = None
 
     @property
     def _axis_length(self) -> float:
@@ -373,6 +374,7 @@ class Renderer:
         moved = copy.copy(self)
         moved.hole_offset_mm = _checked_offsets(self.scene, hole_offset_mm)
         moved._pairs = {}  # the torch path's pair tables depend on the offsets
+        moved._gpu_constants = None  # as do the triton path's
         return moved
 
     def nominal_states(self, position: int = 0) -> EyeStates:
@@ -633,6 +635,22 @@ class Renderer:
         ], dtype=np.float64)
 
 
+def _gpu_constants(renderer: Renderer) -> tuple[torch.Tensor, ...]:
+    """The triton path's fixed inputs on the renderer's device (view directions vx, vy, hole
+    offsets (K, 2), geometry), copied there once: each blocking host-to-device copy waits for
+    the GPU's queue to drain."""
+    if renderer._gpu_constants is None:
+        vx, vy = renderer.scene.eye.view_directions()
+        cells = renderer.scene.plate.cells
+        offsets = (np.zeros((cells[0] * cells[1], 2)) if renderer.hole_offset_mm is None
+                   else renderer.hole_offset_mm.reshape(-1, 2))
+        renderer._gpu_constants = tuple(
+            torch.as_tensor(np.ascontiguousarray(v), dtype=torch.float64,
+                            device=renderer.device)
+            for v in (vx, vy, offsets, renderer.kernel_geometry()))
+    return renderer._gpu_constants
+
+
 def _walk_plan(renderer: Renderer, radius: torch.Tensor, rows: np.ndarray, radius_grad: bool
                ) -> tuple[np.ndarray, float, int, bool, float, float]:
     """What the fused kernels' hole walk needs beyond the scene (see
@@ -705,17 +723,13 @@ class _TritonView(torch.autograd.Function):
     def forward(ctx, radius, stack, renderer, rows):
         from aperture_fab.optics import gpu_kernels
 
-        device = stack.device
-        offsets, extra, _, shared, margin, closed = _walk_plan(
+        _, extra, _, shared, margin, closed = _walk_plan(
             renderer, radius, rows, ctx.needs_input_grad[0])
-        vx, vy = (torch.as_tensor(v, dtype=torch.float64, device=device)
-                  for v in renderer.scene.eye.view_directions())
+        vx, vy, offsets, geometry = _gpu_constants(renderer)
         walk = gpu_kernels.Walk(
             radius.detach().double().contiguous(),
             stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
-            renderer.kernel_geometry(),
-            torch.as_tensor(offsets, dtype=torch.float64, device=device).contiguous(), extra,
-            shared, margin, closed)
+            renderer.kernel_geometry(), geometry, offsets, extra, shared, margin, closed)
         ctx.walk, ctx.dtype = walk, stack.dtype
         return gpu_kernels.view_forward(walk).to(stack.dtype)
 
