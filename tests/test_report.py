@@ -476,6 +476,18 @@ def texts(report: dict[str, Any], *args: Any) -> list[str]:
     return [v.text for v in verdicts(report, *args)]
 
 
+def test_the_tolerance_verdict_states_the_gap_scale(report: dict[str, Any]) -> None:
+    """A report whose tolerance draws were judged at their pictures' size says so, with the
+    size error; an older one (no gap_scale_sigma_percent) reads as before."""
+    scaled = copy.deepcopy(report)
+    scaled["tolerance"].update(gap_scale_sigma_percent=1.0, gap_sigma_mm=0.1)
+    found = next(v for v in verdicts(scaled) if v.topic == "tolerance")
+    assert ("A gap error scales the picture (1.0 % at its 1 sigma, 0.1 mm) and does not blur "
+            "it: each part is judged at its picture's size") in found.text
+    older = next(v for v in verdicts(report) if v.topic == "tolerance")
+    assert "gap error" not in older.text
+
+
 def test_verdicts_hand_written(report: dict[str, Any]) -> None:
     found = verdicts(report, diffraction_blur_px=1.34)
     lines = [v.text for v in found]

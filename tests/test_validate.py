@@ -21,6 +21,7 @@ from aperture_fab.validation.validate import (
     ValidationSettings,
     _tilt_offsets_mm,
     layout_fractions,
+    scaled_field_deg,
     tolerance_analysis,
     validation_settings,
 )
@@ -247,6 +248,38 @@ def test_hole_position_error_lowers_the_psnr(fitted_part):
     assert max(some["psnr_db"]) < nominal and max(more["psnr_db"]) < nominal
     assert some["psnr_percentiles"]["50"] < nominal - 0.3
     assert more["psnr_percentiles"]["50"] < some["psnr_percentiles"]["50"] - 0.3
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_gap_error_scales_the_picture_and_is_judged_at_its_size(fitted_part):
+    """Through every hole, direction v at gap g + d meets the display where v (1 + d / g) meets
+    it at g: the view at g + d over directions scaled by g / (g + d) is the nominal view (up to
+    the display filter's change with the gap), while over the nominal field it is the picture
+    at another size. So the tolerance samples of a gap error alone, judged at their pictures'
+    size, stay at the nominal part's figure."""
+    import torch
+
+    from aperture_fab.optics.model import Renderer
+
+    config, _, fitted, layout = fitted_part
+    scene = config.scene
+    gap = scene.plate.gap_mm
+    a = torch.as_tensor(layout_fractions(layout))
+
+    def view(gap_mm: float, scale: float) -> torch.Tensor:
+        moved = replace(scene, plate=replace(scene.plate, gap_mm=gap_mm), eye=replace(
+            scene.eye, fov_deg=scaled_field_deg(scene.eye.fov_deg, scale)))
+        return Renderer(moved, dtype=torch.float64).render(a, torch.as_tensor(fitted[0]))
+
+    nominal = view(gap, 1.0)
+    signal = float((nominal**2).mean())
+    for error in (0.05 * gap, -0.05 * gap):  # measured: 33 dB sized, 22 dB at the nominal size
+        sized = float(((view(gap + error, gap / (gap + error)) - nominal) ** 2).mean())
+        unsized = float(((view(gap + error, 1.0) - nominal) ** 2).mean())
+        assert 10 * math.log10(signal / sized) > 30 and sized < unsized / 5, (sized, unsized)
+    result = run_tolerance(fitted_part, gap_sigma_mm=0.02 * gap)
+    assert result["gap_scale_sigma_percent"] == pytest.approx(2.0)
+    np.testing.assert_allclose(result["psnr_db"], nominal_psnr(fitted_part), atol=0.3)
 
 
 @pytest.mark.usefixtures("one_torch_thread")

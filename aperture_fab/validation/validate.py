@@ -383,6 +383,13 @@ def _tilt_offsets_mm(scene: Scene, eye_mm: tuple[float, float], tilt_rad: float,
                      eye_mm[1] + (tilted_y - eye_mm[1]) * scale - y], axis=-1)
 
 
+def scaled_field_deg(fov_deg: tuple[float, float], scale: float) -> tuple[float, float]:
+    """The full field (x, y), degrees, whose view directions (tan) are `scale` times those of
+    fov_deg."""
+    return tuple(math.degrees(2 * math.atan(scale * math.tan(math.radians(f) / 2)))
+                 for f in fov_deg)  # type: ignore[return-value]
+
+
 def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Tensor],
                        layout: HoleLayout, process: Process, settings: ValidationSettings,
                        threshold_db: float | None, device: torch.device, dtype: torch.dtype
@@ -399,6 +406,14 @@ def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Te
     PSNR over TOLERANCE_EYE_STATES states of that distribution instead, with the eye position
     error left out: the distribution already holds where the eye may be, and drawing it again
     would count the eye's motion as a manufacturing loss.
+
+    A gap error g + d scales the picture and does not blur it: through every hole, view
+    direction v meets the display where direction v (1 + d / g) meets it at the nominal gap
+    (exactly for eyes focused at infinity), so the view is the nominal plate's view, (g + d) / g
+    times larger. Each sample is judged at its picture's own size (its view directions scaled
+    by g / (g + d)), and the size error is given apart (`gap_scale_sigma_percent`): a picture 1 %
+    larger is not a worse picture, and PSNR against the target at the nominal size would count
+    it as one (a line pattern loses 4 dB at 2 %; tests/test_tolerance.py checks the identity).
 
     threshold_db: the PSNR a good part reaches; None: the part without errors (its bias
     applied), judged the same way, less YIELD_MARGIN_DB.
@@ -437,11 +452,13 @@ def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Te
         if states is not None:
             eye = nominal_eye  # drawn all the same, so the other terms' samples stay as they were
         # The holes stay aimed at the nominal eye point: it comes first, the sample second.
+        # The view is taken over the field the gap scales the picture to (see the docstring).
         moved = Scene(
             scene.display,
             Plate(scene.plate.cells, scene.plate.pitch_mm, gap, scene.plate.thickness_mm,
                   scene.plate.hole_axis),
-            Eye(scene.eye.pupil_mm, scene.eye.eye_relief_mm, scene.eye.fov_deg,
+            Eye(scene.eye.pupil_mm, scene.eye.eye_relief_mm,
+                scaled_field_deg(scene.eye.fov_deg, scene.plate.gap_mm / gap),
                 scene.eye.view_pixels, scene.eye.focus_mm, (nominal_eye, eye), (1.0, 1.0)),
         )
         # Position error and tilt move only the holes there are (closed cells stay closed).
@@ -462,6 +479,7 @@ def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Te
         "radius_sigma_mm": process.radius_sigma_mm,
         "position_sigma_mm": process.position_sigma_mm,
         "gap_sigma_mm": settings.gap_sigma_mm,
+        "gap_scale_sigma_percent": 100 * settings.gap_sigma_mm / scene.plate.gap_mm,
         "tilt_sigma_deg": settings.tilt_sigma_deg,
         "eye_sigma_mm": settings.eye_sigma_mm if states is None else 0.0,
         "eye": ("the nominal eye, moved by eye_sigma_mm" if states is None else

@@ -199,6 +199,12 @@ def tolerance_verdict(tolerance: Mapping[str, Any],
     low, median = tolerance["psnr_percentiles"]["5"], tolerance["psnr_percentiles"]["50"]
     if low is not None and median is not None:
         text += f" Median {median:.1f} dB; 1 part in 20 scores below {low:.1f} dB."
+    scale = tolerance.get("gap_scale_sigma_percent")
+    if scale:  # reports before it judged a gap error at the nominal size
+        text += (f" A gap error scales the picture ({scale:.1f} % at its 1 sigma, "
+                 f"{tolerance['gap_sigma_mm']:g} mm) and does not blur it: each part is judged "
+                 "at its picture's size (where the size matters, as when the picture must line "
+                 "up with the world, set the content's scale for the assembled gap).")
     if share >= YIELD_PASS:
         return Verdict("tolerance", "pass", text + f" At least {100 * YIELD_PASS:.0f} %.")
     settings = {} if optimizer is None else optimizer
