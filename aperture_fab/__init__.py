@@ -1,5 +1,10 @@
 """aperture-fab: design and fabricate coded pinhole apertures for slim near-eye displays.
 
+One function per command, each returning what its command prints: `run_design` (`design`: a
+folder with the part and its report), `validate`, `render`, `display`, `export`, `assembly`,
+`measure_plate` (`measure`: `aperture_fab.measure` is its package); `design` is the design job
+without files (targets and config in, the design and its part out).
+
 The public names are loaded on first use (PEP 562): `import aperture_fab` stays cheap, so the
 command line can print its help, presets and processes without importing PyTorch, and
 `aperture_fab.design` imports the optimizer only when it is asked for.
@@ -13,8 +18,14 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from aperture_fab import targets
     from aperture_fab.config import Config, resolve
+    from aperture_fab.measure.job import run_measure as measure_plate
     from aperture_fab.optics.scene import Display, Eye, Plate, Scene
-    from aperture_fab.pipeline import DesignResult, design
+    from aperture_fab.pipeline import DesignResult, design, run_design
+    from aperture_fab.pipeline.assembly_job import run_assembly as assembly
+    from aperture_fab.pipeline.export_job import export
+    from aperture_fab.pipeline.render_job import run_display as display
+    from aperture_fab.pipeline.render_job import run_render as render
+    from aperture_fab.pipeline.validate_job import run_validate as validate
 
 __all__ = [
     "Config",
@@ -23,9 +34,16 @@ __all__ = [
     "Eye",
     "Plate",
     "Scene",
+    "assembly",
     "design",
+    "display",
+    "export",
+    "measure_plate",
+    "render",
     "resolve",
+    "run_design",
     "targets",
+    "validate",
 ]
 __version__ = "0.1.0"
 
@@ -37,9 +55,16 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "Eye": ("aperture_fab.optics.scene", "Eye"),
     "Plate": ("aperture_fab.optics.scene", "Plate"),
     "Scene": ("aperture_fab.optics.scene", "Scene"),
+    "assembly": ("aperture_fab.pipeline.assembly_job", "run_assembly"),
     "design": ("aperture_fab.pipeline", "design"),
+    "display": ("aperture_fab.pipeline.render_job", "run_display"),
+    "export": ("aperture_fab.pipeline.export_job", "export"),
+    "measure_plate": ("aperture_fab.measure.job", "run_measure"),
+    "render": ("aperture_fab.pipeline.render_job", "run_render"),
     "resolve": ("aperture_fab.config", "resolve"),
+    "run_design": ("aperture_fab.pipeline", "run_design"),
     "targets": ("aperture_fab.targets", None),
+    "validate": ("aperture_fab.pipeline.validate_job", "run_validate"),
 }
 
 

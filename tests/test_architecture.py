@@ -24,6 +24,9 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "metrics": ("optics", "optimize", "fabrication", "validation", "pipeline", "sweep", "cli"),
     "pipeline": ("sweep", "cli"),
     "sweep": ("cli",),
+    # The error classes that carry their exit status: importable from anywhere, importing nothing.
+    "errors": ("config", "optics", "io", "fabrication", "optimize", "validation", "pipeline",
+               "sweep", "cli", "metrics", "measure", "targets"),
 }
 
 

@@ -265,12 +265,12 @@ def test_an_unwritable_output_names_the_file(
 
 def test_ctrl_c_in_export_exits_130(folder: Path, monkeypatch: pytest.MonkeyPatch,
                                     capsys: pytest.CaptureFixture[str]) -> None:
-    import aperture_fab.pipeline.design_job as design_job
+    import aperture_fab.pipeline.export_job as export_job
 
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(design_job, "write_part", interrupted)
+    monkeypatch.setattr(export_job, "write_part", interrupted)
     assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_INTERRUPTED
     err = capsys.readouterr().err
     assert "interrupted (Ctrl-C) during `export`" in err and "Traceback" not in err
@@ -278,12 +278,12 @@ def test_ctrl_c_in_export_exits_130(folder: Path, monkeypatch: pytest.MonkeyPatc
 
 def test_out_of_memory_is_a_refusal_not_a_traceback(folder: Path, monkeypatch: pytest.MonkeyPatch,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
-    import aperture_fab.pipeline.design_job as design_job
+    import aperture_fab.pipeline.export_job as export_job
 
     def too_large(*args: object, **kwargs: object) -> None:
         raise MemoryError
 
-    monkeypatch.setattr(design_job, "write_part", too_large)
+    monkeypatch.setattr(export_job, "write_part", too_large)
     assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_FAILED
     err = capsys.readouterr().err
     assert "`export` ran out of memory" in err and "Traceback" not in err
@@ -296,9 +296,9 @@ def test_a_sigterm_dropped_inside_a_library_still_stops_as_sigterm(
     """A SIGTERM whose Terminated lands in a ctypes callback (Numba's compiler: CI saw it) is
     printed and dropped there; the command then fails for another reason or finishes, and
     exits 143 all the same."""
-    import aperture_fab.pipeline.design_job as design_job
+    import aperture_fab.pipeline.export_job as export_job
 
-    write_part = design_job.write_part
+    write_part = export_job.write_part
 
     def signalled(*args: object, **kwargs: object) -> object:
         with contextlib.suppress(KeyboardInterrupt):  # as the callback's caller drops it
@@ -307,7 +307,7 @@ def test_a_sigterm_dropped_inside_a_library_still_stops_as_sigterm(
             raise ValueError("the compiler's state after the dropped exception")
         return write_part(*args, **kwargs)
 
-    monkeypatch.setattr(design_job, "write_part", signalled)
+    monkeypatch.setattr(export_job, "write_part", signalled)
     assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_TERMINATED
     err = capsys.readouterr().err
     assert "(SIGTERM) during `export`" in err and "Traceback" not in err

@@ -15,7 +15,8 @@ import pytest
 import torch
 
 import aperture_fab.optimize.optimizer as optimize_module
-from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REPORT_FAIL, OVERRIDES, main
+from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REPORT_FAIL, main
+from aperture_fab.cli.flags import OVERRIDES
 from aperture_fab.config.config import parse_toml, resolve
 from aperture_fab.config.presets import PRESET_DESCRIPTIONS, PRESETS
 

@@ -38,6 +38,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -311,6 +312,32 @@ def test_the_readme_config_block_resolves() -> None:
     config = resolve(None, parse_toml(readme_config(), "README.md"))
     assert config.scene.plate.cells == (80, 80)
     assert fabrication_settings(config.extra, {}).process.name == "photomask"
+
+
+def readme_python(first_line: str) -> str:
+    """The README's ```python block that starts with `first_line`."""
+    blocks = re.findall(r"^```python\n(.*?)^```", (ROOT / "README.md").read_text(), re.S | re.M)
+    found = [b for b in blocks if b.startswith(first_line)]
+    assert found, f"README.md has no ```python block starting {first_line!r}"
+    return found[0]
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("one_torch_thread")
+def test_the_readme_api_example_runs(workspace: Path, monkeypatch: pytest.MonkeyPatch,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """The README's commands-as-functions block, run as written in a fresh folder with the
+    example targets (a minute on 2 cores): each function returns its command's value."""
+    base = workspace.parent / "api_example"
+    shutil.copytree(workspace / "examples" / "targets", base / "examples" / "targets")
+    monkeypatch.chdir(base)
+    namespace: dict[str, Any] = {}
+    exec(compile(readme_python("# The commands as functions"), "README.md", "exec"), namespace)
+    assert namespace["made"].part.layout.count > 0
+    assert namespace["levels"]["tolerance"] in ("pass", "warn", "fail")
+    assert (base / "outputs" / "api" / "dxf" / "plate.dxf").is_file()
+    assert namespace["view"].psnr_db is not None and namespace["view"].path.is_file()
+    assert "holes;" in capsys.readouterr().out
 
 
 # -- the workspace ---------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from aperture_fab.cli import _print_eye_distribution
+from aperture_fab.cli.output import print_eye_distribution
 from aperture_fab.optics.eyes import EyeDistribution
 from aperture_fab.validation.evidence import eye_distribution_block, eye_figures
 from aperture_fab.validation.report import (
@@ -276,7 +276,7 @@ def test_an_eyebox_of_zero_size_has_no_map() -> None:
 def test_the_terminal_table_leads_with_the_distribution(capsys: pytest.CaptureFixture[str]
                                                          ) -> None:
     report = report_for(synthetic_eyes([OPEN_DB - 1.5, 30.0], targets=2), ("letter", "grid"))
-    _print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
+    print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
                             validated=True)
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"PSNR over the eye distribution (dB), p10 / median / p90, {STATES} states:"
@@ -293,9 +293,9 @@ def test_the_terminal_table_leads_with_the_distribution(capsys: pytest.CaptureFi
 
 def test_the_terminal_says_when_the_distribution_was_not_judged(
         capsys: pytest.CaptureFixture[str]) -> None:
-    _print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
+    print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
     assert "validation.eye_states = 0" in capsys.readouterr().out
-    _print_eye_distribution({}, NAMES, validated=False)
+    print_eye_distribution({}, NAMES, validated=False)
     assert "--no-validate" in capsys.readouterr().out
 
 
@@ -306,7 +306,7 @@ def test_the_terminal_lists_the_reports_other_warnings_and_failures(
                 {"topic": "contrast", "level": "fail", "text": "Leakage."},
                 {"topic": "mesh", "level": "pass", "text": "Watertight."},
                 {"topic": "eye distribution", "level": "fail", "text": "Printed above."}]
-    _print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
+    print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
                             validated=True, verdicts=verdicts)
     out = capsys.readouterr().out
     assert "light: WARN: The view is mesopic." in out
@@ -316,7 +316,7 @@ def test_the_terminal_lists_the_reports_other_warnings_and_failures(
 
 def test_the_terminal_ends_with_the_recommended_fix(capsys: pytest.CaptureFixture[str]) -> None:
     report = report_for(synthetic_eyes(OPEN_DB - 1.5))
-    _print_eye_distribution({"eye_distribution": eye_headline(report)}, NAMES, validated=True,
+    print_eye_distribution({"eye_distribution": eye_headline(report)}, NAMES, validated=True,
                             verdicts=report["verdicts"])
     out = " ".join(capsys.readouterr().out.split())
     first = report["verdicts"][0]
@@ -325,5 +325,5 @@ def test_the_terminal_ends_with_the_recommended_fix(capsys: pytest.CaptureFixtur
     assert out.endswith(f"recommended fix (eye distribution): {first['fixes'][0]} ({others} "
                         "other fixes in the report)")
     assert first["fixes"][1] not in out  # the others are in the report
-    _print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
+    print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
     assert "recommended fix" not in capsys.readouterr().out  # no verdicts, no fix

@@ -18,6 +18,7 @@ import pytest
 from PIL import Image
 
 from aperture_fab import cli
+from aperture_fab.cli import flags
 from aperture_fab.io.files import load_targets
 from aperture_fab.io.images import (
     ALPHA_BACKGROUNDS,
@@ -391,8 +392,8 @@ def test_a_link_to_an_image_is_read(tmp_path: Path) -> None:
 # --- the options and the command line ----------------------------------------------------------
 
 def test_the_cli_offers_the_choices_images_defines() -> None:
-    # cli.py writes them out (building the parser must not import PIL): they must agree.
-    assert cli.ALPHA_CHOICES == ALPHA_BACKGROUNDS and cli.FIT_CHOICES == TARGET_FITS
+    # cli/flags.py writes them out (building the parser must not import PIL): they must agree.
+    assert flags.ALPHA_CHOICES == ALPHA_BACKGROUNDS and flags.FIT_CHOICES == TARGET_FITS
     parser = cli.build_parser()
     for command in ("design", "validate", "render", "display"):
         text = parser._subparsers._group_actions[0].choices[command].format_help()  # type: ignore

@@ -87,18 +87,19 @@ def fake_design(verdicts: list[dict[str, str]]) -> Callable[..., Any]:
 
 
 def fake_validate(verdicts: list[dict[str, str]]) -> Callable[..., Any]:
-    """run_validate's stand-in: publishes a report.json with the given verdicts, as the job does
-    (the command reads the verdicts back from it)."""
+    """run_validate's stand-in: publishes a report.json with the given verdicts and returns
+    it, as the job does (the command takes the verdicts from the returned report)."""
 
     def run(part: Path, targets: Any, *, out: Path, **_: Any) -> Any:
         out.mkdir(parents=True)
-        (out / "report.json").write_text(json.dumps({"verdicts": verdicts,
-                                                     "eye_distribution": None}))
+        report = {"verdicts": verdicts, "eye_distribution": None}
+        (out / "report.json").write_text(json.dumps(report))
         layout = SimpleNamespace(count=3, violations=[])
         return SimpleNamespace(folder=out, kind="holes", names=NAMES, timings_s={},
                                part=SimpleNamespace(layout=layout), display_source="kept",
                                validation=SimpleNamespace(
-                                   metrics={"as_built": {"marker": {"psnr_db": 20.0}}}))
+                                   metrics={"as_built": {"marker": {"psnr_db": 20.0}}}),
+                               report=json.loads(json.dumps(report)))
 
     return run
 
@@ -218,6 +219,27 @@ def test_the_help_and_the_readme_list_every_exit_status(
         with pytest.raises(SystemExit):
             main([command, "--help"])
         assert "--strict" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("module", "name", "status"), [
+    ("aperture_fab.fabrication.process", "UnmakeableError", "EXIT_FAILED"),
+    ("aperture_fab.optimize.optimizer", "DivergedError", "EXIT_FAILED"),
+    ("aperture_fab.sweep.cluster", "ClusterUnreachable", "EXIT_NO_CLUSTER"),
+])
+def test_an_error_class_carries_its_exit_status(module: str, name: str, status: str) -> None:
+    """The status comes from the class (aperture_fab.errors), and a subclass inherits it; the
+    error keeps its Python kind, which the jobs catch it by."""
+    import importlib
+
+    import aperture_fab.cli as cli
+    from aperture_fab.cli.status import exit_code
+
+    kind = getattr(importlib.import_module(module), name)
+    err = type("Sub", (kind,), {})("why")
+    assert exit_code(kind("why")) == exit_code(err) == getattr(cli, status)
+    assert isinstance(err, ValueError | FloatingPointError | ConnectionError)
+    assert exit_code(ValueError("x")) == cli.EXIT_BAD_INPUT
+    assert exit_code(PermissionError("x")) == cli.EXIT_CANNOT_WRITE
 
 
 # --- end to end: a real tiny design, whose report fails ---------------------------------------

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from aperture_fab.errors import Refused
+
 __all__ = [
     "PROCESSES",
     "Process",
@@ -55,7 +57,7 @@ MAX_OPTICAL_DENSITY = 12.0
 MAX_HOLE_ASPECT_RATIO = 4.0
 
 
-class UnmakeableError(ValueError):
+class UnmakeableError(Refused, ValueError):
     """The design cannot be made with the chosen process (the message says why and what would)."""
 
 

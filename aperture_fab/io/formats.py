@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 __all__ = [
     "PART_FORMATS",
     "PART_SUFFIXES",
+    "PART_FILE_SUFFIXES",
     "FormatName",
     "PartFormat",
     "Polarity",
@@ -463,6 +464,9 @@ PART_FORMATS: dict[FormatName, PartFormat] = {f.name: f for f in (
 #: Suffixes that name a part file (an --out ending in one names the file, not a folder).
 PART_SUFFIXES: tuple[str, ...] = tuple(
     suffix for fmt in PART_FORMATS.values() for suffix in fmt.suffixes if fmt.name != "csv")
+#: Every format's suffixes, the hole table's too (what `export` writes).
+PART_FILE_SUFFIXES: tuple[str, ...] = tuple(
+    suffix for fmt in PART_FORMATS.values() for suffix in fmt.suffixes)
 
 
 def part_files(part: Part, formats: tuple[FormatName, ...], settings: FabricationSettings,
@@ -470,3 +474,4 @@ def part_files(part: Part, formats: tuple[FormatName, ...], settings: Fabricatio
     """File name -> content for the requested formats."""
     return {PART_FORMATS[name].file_name: PART_FORMATS[name].write(part, settings, progress)
             for name in formats}
+

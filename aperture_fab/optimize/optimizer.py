@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.errors import Refused
 from aperture_fab.fabrication.quantize import MadeSizes
 from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.as_made import MadeDraw, MadeOptics, draw_errors, made_views
@@ -90,7 +91,7 @@ class Interrupted(Exception):
         self.state = state
 
 
-class DivergedError(FloatingPointError):
+class DivergedError(Refused, FloatingPointError):
     """The loss became NaN or infinite."""
 
 

@@ -499,13 +499,14 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         if result.part is not None and fabrication is not None:
             announce(f"design: writing {', '.join(formats)} ({result.part.layout.count} holes)")
             start = time.perf_counter()
-            write_part(stage_folder, result.part, fabrication, formats, progress,
-                       on_written=staged)
+            written = write_part(stage_folder, result.part, fabrication, formats, progress,
+                                 on_written=staged)
             result.timings_s["export_s"] = time.perf_counter() - start
             if validation is not None:
                 announce("design: validating the part as written (eye distribution, mesh "
                          "re-trace, tolerances)")
-                checked = write_report(stage_folder, result, fabrication, validation, command)
+                checked = write_report(stage_folder, result, fabrication, validation,
+                                       written[stage_folder / "plate.stl"], command)
                 for variant in ("quantized", "as_built"):
                     per_target = [checked.metrics[variant][name] for name in result.names]
                     result.metrics[variant] = {key: [m[key] for m in per_target]
@@ -527,18 +528,18 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
 
 
 def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
-                 settings: ValidationSettings, command: Sequence[str] | None = None
+                 settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
                  ) -> Validation:
-    """Validate the part as written (plate.stl re-read from disk) and write report.json,
-    views.npz and report.html; result.metrics["eye_distribution"] gets the headline over the
-    eye distribution (None when not judged)."""
+    """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
+    write report.json, views.npz and report.html; result.metrics["eye_distribution"] gets the
+    headline over the eye distribution (None when not judged)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.validation.evidence import assemble
     from aperture_fab.validation.report import eye_headline, report_json
 
     if result.part is None:
         raise ValueError("no part to validate: design with fabrication settings first.")
-    mesh = read_stl((folder / "plate.stl").read_bytes())
+    mesh = read_stl(stl)
     open_fraction, displays = optimum(result.design)
     checked = validate(result.config, result.targets, displays, open_fraction, result.part,
                        fabrication.process, result.names, settings, mesh,
@@ -565,12 +566,14 @@ def _formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, .
 
 def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
                formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True,
-               on_written: Callable[[Path], None] | None = None) -> list[Path]:
-    """Write the part's files atomically; a format that fails leaves no file behind.
-    on_written: called with the folder after each format's file (run_design's testing seam)."""
+               on_written: Callable[[Path], None] | None = None) -> dict[Path, bytes]:
+    """Write the part's files atomically; a format that fails leaves no file behind. Returns
+    each file written with its bytes, in the order written (the checks of the part as written
+    read these, not the disk). on_written: called with the folder after each format's file
+    (run_design's testing seam)."""
     from tqdm import tqdm
 
-    written = []
+    written: dict[Path, bytes] = {}
     for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
         holes = tqdm(total=part.layout.count, desc=f"{fmt} holes", unit="hole", leave=False,
                      disable=not progress or fmt != "step")
@@ -580,7 +583,7 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
 
         for name, data in part_files(part, (fmt,), fabrication, advance).items():
             write_atomic(folder / name, data)
-            written.append(folder / name)
+            written[folder / name] = data
         holes.close()
         if on_written is not None:
             on_written(folder)

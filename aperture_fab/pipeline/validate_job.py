@@ -12,11 +12,12 @@ design.npz lies beside the config.
 
 from __future__ import annotations
 
+import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -67,7 +68,8 @@ class RecheckResult:
     folder: where report.json, report.html, views.npz and display_<target>.png were written.
     kind: the part's kind. names: (T,) target names. part: the part checked (layout, mesh).
     validation: views and metrics. display_source: where the display content came from.
-    timings_s: seconds per stage.
+    timings_s: seconds per stage. report: report.json's content as written (its "verdicts"
+    decide the exit status).
     """
 
     folder: Path
@@ -77,6 +79,7 @@ class RecheckResult:
     validation: Validation
     display_source: DisplaySource
     timings_s: dict[str, float]
+    report: Mapping[str, Any]
 
 
 def design_part(design: SavedDesign, loaded: Part, config: Config,
@@ -240,12 +243,13 @@ def run_validate(
                               "display": source,
                               "design": None if design is None else str(design.path),
                               "measured_from_scan": scan}
+    report_text = report_json(report)
     with staging(folder) as staged:
         write_atomic(staged / "views.npz", evidence.views_npz)
         write_atomic(staged / "report.html", evidence.html)
-        write_atomic(staged / "report.json", report_json(report))
+        write_atomic(staged / "report.json", report_text)
         for name, content in zip(names, shown, strict=True):
             write_atomic(staged / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
         publish(staged, folder, command if command is not None else VALIDATE_COMMAND)
     return RecheckResult(folder, kind, tuple(names), loaded, checked, source,
-                         dict(report["timings_s"]))
+                         dict(report["timings_s"]), json.loads(report_text))

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from aperture_fab.sweep.cluster import ClusterUnreachable
 from aperture_fab.sweep.command import add_parser
 
-#: The exit statuses of `aperture-fab` (cli.py) for these errors.
+#: The exit statuses of `aperture-fab` (cli/status.py) for these errors.
 EXIT_BAD_INPUT = 3
 EXIT_CANNOT_WRITE = 4
 EXIT_NO_CLUSTER = 7

@@ -21,6 +21,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from aperture_fab.errors import Unreachable
+
 __all__ = ["ClusterUnreachable", "Address", "parse_address", "probe", "connect", "classify",
            "Fault", "DEFAULT_CONNECT_TIMEOUT_S", "AUTH_HINT"]
 
@@ -49,7 +51,7 @@ LOST_ERRORS = frozenset({
 })
 
 
-class ClusterUnreachable(ConnectionError):
+class ClusterUnreachable(Unreachable, ConnectionError):
     """The Ray cluster at --address could not be reached (or refused this process) in time."""
 
 

@@ -1,4 +1,4 @@
-"""The `aperture-fab sweep` subcommand: argparse wiring and the run, kept apart from cli.py so
+"""The `aperture-fab sweep` subcommand: argparse wiring and the run, kept apart from cli/ so
 the heavy optional parts (Ray, Optuna, pyarrow) load only when a sweep runs."""
 
 from __future__ import annotations
