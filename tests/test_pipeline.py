@@ -196,14 +196,14 @@ def test_run_design_writes_every_output(tmp_path: Path, make_config: MakeConfig,
     target = tmp_path / "pixel art.png"
     target.write_bytes(encode_png(pixel_art(32)))
     checkpoints: list[Path] = []
-    real_save = pipeline_module._save_checkpoint
+    real_save = pipeline_module.save_checkpoint
 
     def save(folder: Path, state: dict[str, Any], fingerprint: str) -> None:
         real_save(folder, state, fingerprint)
         checkpoints.append(folder / "checkpoint.pt")
         assert (folder / "checkpoint.pt").is_file()
 
-    monkeypatch.setattr(pipeline_module, "_save_checkpoint", save)
+    monkeypatch.setattr(pipeline_module, "save_checkpoint", save)
     with pytest.warns(TargetWarning, match="stretched"):  # a square target, a 4:3 display
         result = run_design([target], tmp_path / "out" / "plate.stl", config, progress=False)
     folder = tmp_path / "out"

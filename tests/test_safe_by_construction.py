@@ -31,13 +31,13 @@ from aperture_fab.io.manifest import (
     staging,
 )
 from aperture_fab.optimize.optimizer import MaskDesign, optimize
-from aperture_fab.pipeline.design_job import (
+from aperture_fab.pipeline.checkpoint import (
     CHECKPOINT_NAME,
-    _resume_state,
-    _save_checkpoint,
     input_digests,
-    run_design,
+    resume_state,
+    save_checkpoint,
 )
+from aperture_fab.pipeline.design_job import run_design
 from aperture_fab.sweep.worker import POINT_FILE, clear_attempt
 from aperture_fab.targets import asymmetric_marker, checker
 
@@ -111,12 +111,12 @@ def test_a_checkpoint_missing_state_is_refused_by_name(tmp_path: Path) -> None:
                 "state": {"iteration": 3}, "inputs": {}}, buffer)
     (tmp_path / CHECKPOINT_NAME).write_bytes(buffer.getvalue())
     with pytest.raises(ValueError, match=r"lacks state\['history'\], .*Delete it"):
-        _resume_state(tmp_path / CHECKPOINT_NAME, {}, [])
+        resume_state(tmp_path / CHECKPOINT_NAME, {}, [])
 
 
 def test_only_data_is_saved(tmp_path: Path) -> None:
     with pytest.raises(TypeError, match=r"checkpoint\['state'\]\['best'\] is a ndarray"):
-        _save_checkpoint(tmp_path, {"best": np.zeros(2)}, {})
+        save_checkpoint(tmp_path, {"best": np.zeros(2)}, {})
     assert not (tmp_path / CHECKPOINT_NAME).exists()
 
 
@@ -143,8 +143,8 @@ def test_a_checkpoint_file_resumes_to_the_same_result(tmp_path: Path, marker_png
     state = saved[1]  # iteration 8: after the snap at 6, so it holds the continuous design
     assert state["iteration"] == 8 and isinstance(state["continuous"], tuple)
     inputs = input_digests([marker_png], config, None)
-    _save_checkpoint(tmp_path, state, inputs)
-    loaded = _resume_state(tmp_path / CHECKPOINT_NAME, inputs, [marker_png])
+    save_checkpoint(tmp_path, state, inputs)
+    loaded = resume_state(tmp_path / CHECKPOINT_NAME, inputs, [marker_png])
     assert isinstance(loaded["continuous"], tuple)
     from_file = optimize_marker(config, made=made, state=loaded)
     from_memory = optimize_marker(config, made=made, state=state)

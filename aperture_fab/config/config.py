@@ -528,7 +528,7 @@ def to_toml(config: Config) -> str:
     """The fully resolved config as TOML text; resolving the parsed text gives `config` back."""
     # tomlkit writes a table's keys one per line before its sub-tables, arrays on one line,
     # floats as repr (the shortest text that reads back to the same float) and escapes what
-    # TOML requires. The checkpoint's config digest (pipeline.design_job.input_digests) hashes
+    # TOML requires. The checkpoint's config digest (pipeline.checkpoint.input_digests) hashes
     # this text: tests/test_config.py holds the layout, so a tomlkit upgrade that changed it
     # is seen before it makes checkpoints refuse --resume.
     document = tomlkit.item(to_dict(config))

@@ -80,6 +80,13 @@ class MaskDesign:
     bounds: tuple[float, float]
     stopped: str
     continuous: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def optimum(self) -> tuple[np.ndarray, np.ndarray]:
+        """The optimized design before quantization: (open fractions, displays)."""
+        if self.continuous is not None:
+            return self.continuous
+        return self.open_fraction, self.displays
     snapped: bool = False
 
 

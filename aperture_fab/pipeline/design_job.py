@@ -8,12 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
-import io
-import json
-import pickle
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.config.config import Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.config.config import Config, parse_toml, resolve, to_toml
 from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.fabrication.part import (
     FabricationSettings,
@@ -34,11 +29,11 @@ from aperture_fab.fabrication.part import (
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
-from aperture_fab.io.files import load_targets, output_folder, write_atomic
-from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
-from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets, resample
+from aperture_fab.io.files import load_targets, output_folder
+from aperture_fab.io.formats import FormatName
+from aperture_fab.io.images import TargetOptions, prepare_targets, resample
 from aperture_fab.io.manifest import publish, remove_listed, staging
-from aperture_fab.metrics import gain, gain_mse, psnr_db
+from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.as_made import white_transmission
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
@@ -53,30 +48,28 @@ from aperture_fab.optimize.optimizer import (
     optimize,
     training_states,
 )
+from aperture_fab.pipeline.checkpoint import (
+    CHECKPOINT_NAME,
+    input_digests,
+    resume_state,
+    save_checkpoint,
+    sha256,
+)
+from aperture_fab.pipeline.design_files import (
+    part_formats,
+    write_outputs,
+    write_part,
+    write_report,
+    write_summary,
+)
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.validate import (
-    Validation,
     ValidationSettings,
     layout_fractions,
-    validate,
 )
 
-__all__ = ["DesignResult", "check_light_floor", "design", "input_digests", "recorded_config",
-           "run_design"]
+__all__ = ["DesignResult", "check_light_floor", "design", "recorded_config", "run_design"]
 
-CHECKPOINT_NAME = "checkpoint.pt"
-#: The checkpoint format: torch.save of data only (tensors, numbers, strings, None, lists,
-#: tuples, dicts), read back with weights_only=True. Version 1 had no marker and was read with
-#: the full unpickler, so a checkpoint could run code: those are refused, not read.
-CHECKPOINT_FORMAT = "aperture-fab checkpoint"
-CHECKPOINT_VERSION = 2
-CHECKPOINT_SCALARS = (str, bool, int, float)
-#: The optimizer state a checkpoint must hold (key: allowed types), checked before resuming.
-CHECKPOINT_STATE: dict[str, type | tuple[type, ...]] = {
-    "iteration": int, "history": list, "best": float, "best_iteration": int,
-    "mask_logits": torch.Tensor, "display": (torch.Tensor, type(None)),
-    "optimizer": (dict, type(None)), "snap_from": int, "continuous": (tuple, type(None)),
-}
 #: The display is re-fitted to the part as built for this share of the design's iterations.
 FIT_SHARE = 3
 MIN_FIT_ITERATIONS = 20
@@ -159,7 +152,7 @@ def design(
     start = time.perf_counter()
     views, metrics = evaluate(config, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
-        "optimized": optimum(result),
+        "optimized": result.optimum,
     })
     timings["evaluate_s"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -256,13 +249,6 @@ def check_light_floor(scene: Scene, settings: OptimizerSettings,
             "thinner webs (`aperture-fab processes`), or chief-ray hole axes.")
 
 
-def optimum(design: MaskDesign) -> tuple[np.ndarray, np.ndarray]:
-    """The optimized design before quantization: (open fractions, displays)."""
-    if design.continuous is not None:
-        return design.continuous
-    return design.open_fraction, design.displays
-
-
 def evaluate(
     config: Config,
     targets: np.ndarray,
@@ -315,102 +301,6 @@ def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
                         device=targets.device)
         for t in targets
     ])
-
-
-def _check_data(value: Any, where: str) -> None:
-    """Refuse (TypeError) a checkpoint value that is not plain data: what is saved must load
-    with torch.load(weights_only=True), or the resume would be refused hours later."""
-    if isinstance(value, dict):
-        for key, item in value.items():
-            _check_data(key, where)
-            _check_data(item, f"{where}[{key!r}]")
-    elif isinstance(value, (list, tuple)):
-        for index, item in enumerate(value):
-            _check_data(item, f"{where}[{index}]")
-    elif not isinstance(value, (torch.Tensor, *CHECKPOINT_SCALARS)) and value is not None:
-        raise TypeError(f"checkpoint value {where} is a {type(value).__name__}; a checkpoint "
-                        "holds only tensors, numbers, strings, None and lists, tuples and "
-                        "dicts of them (convert it before saving).")
-
-
-def _save_checkpoint(folder: Path, state: dict[str, Any], inputs: dict[str, str]) -> None:
-    saved = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "state": state,
-             "inputs": inputs}
-    _check_data(saved, "checkpoint")
-    buffer = io.BytesIO()
-    torch.save(saved, buffer)
-    write_atomic(folder / CHECKPOINT_NAME, buffer.getvalue())
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-def input_digests(paths: Sequence[Path], config: Config, fabrication: FabricationSettings | None
-                  ) -> dict[str, str]:
-    """SHA-256 of every input of a design, by the name a message gives it: the resolved
-    config, the fabrication process (it bounds the optimizer) and each target image's bytes."""
-    digests = {"the config (--config file, preset and flags)": _sha256(to_toml(config).encode())}
-    if fabrication is not None:
-        digests["the fabrication process (--process, [process])"] = _sha256(
-            repr((fabrication.process, fabrication.force)).encode())
-    for number, path in enumerate(paths, start=1):
-        # Keyed by position, not path: a moved file with the same content may resume.
-        digests[f"target image {number}"] = _sha256(Path(path).read_bytes())
-    return digests
-
-
-def _resume_state(checkpoint: Path, inputs: dict[str, str], paths: Sequence[Path]
-                  ) -> dict[str, Any]:
-    """The optimizer state of a checkpoint made with exactly these inputs, else ValueError
-    naming the input that changed."""
-    if not checkpoint.exists():
-        raise ValueError(f"--resume: no checkpoint at {checkpoint}; run without --resume.")
-    saved = _load_checkpoint(checkpoint)
-    before = saved["inputs"]
-    changed = [name for name in {**before, **inputs} if before.get(name) != inputs.get(name)]
-    targets = {f"target image {n}": f" ({path})" for n, path in enumerate(paths, start=1)}
-    changed = [name + targets.get(name, "") for name in changed]
-    if changed:
-        raise ValueError(f"--resume: {', '.join(changed)} changed since {checkpoint} was saved "
-                         "(content compared by SHA-256); resuming would mix two designs. Give "
-                         "the inputs of the interrupted run, or run without --resume to start "
-                         "again.")
-    return dict(saved["state"])
-
-
-def _load_checkpoint(checkpoint: Path) -> dict[str, Any]:
-    """A checkpoint's contents, read as data only: torch's weights_only loader builds tensors
-    and plain containers and refuses any other object, so a checkpoint from someone else never
-    runs code here. ValueError for anything that is not a checkpoint of this format."""
-    fix = "Delete it and run without --resume to start again."
-    try:
-        with warnings.catch_warnings():  # torch warns about the pickle protocol it refuses
-            warnings.simplefilter("ignore")
-            saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:  # torch's words suggest loading it unsafely: not ours
-        raise ValueError(f"--resume: {checkpoint} holds objects other than data (it was written "
-                         "by an older aperture-fab, or not by aperture-fab); it was not loaded, "
-                         f"since loading it could run code. {fix}") from err
-    except (RuntimeError, EOFError, ValueError, OSError) as err:  # truncated or not ours
-        raise ValueError(f"--resume: {checkpoint} cannot be read ({err}); it is truncated or "
-                         f"not a checkpoint. {fix}") from err
-    if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"--resume: {checkpoint} is not an aperture-fab checkpoint of this "
-                         f"version (format {CHECKPOINT_FORMAT!r} version {CHECKPOINT_VERSION}); "
-                         f"an older aperture-fab made it, or another program. {fix}")
-    if saved.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"--resume: {checkpoint} has checkpoint version "
-                         f"{saved.get('version')!r}; this aperture-fab reads version "
-                         f"{CHECKPOINT_VERSION}. {fix}")
-    state, inputs = saved.get("state"), saved.get("inputs")
-    missing = [key for key, kind in CHECKPOINT_STATE.items()
-               if not isinstance(state, dict) or not isinstance(state.get(key), kind)]
-    if missing or not isinstance(inputs, dict):
-        what = ", ".join(f"state[{k!r}]" for k in missing) or "inputs"
-        raise ValueError(f"--resume: {checkpoint} lacks {what} or holds another type there; "
-                         f"it is damaged or not written by aperture-fab. {fix}")
-    return saved
 
 
 def recorded_config(config: Config, fabrication: FabricationSettings | None,
@@ -478,17 +368,17 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     inputs = input_digests(paths, config, fabrication)
     chosen = None if target_options is None else target_options.changes()
     if chosen is not None:  # other targets from the same files: --resume must see a change
-        inputs["the target options (--alpha, --fit, --frame)"] = _sha256(chosen.encode())
+        inputs["the target options (--alpha, --fit, --frame)"] = sha256(chosen.encode())
     checkpoint = folder / CHECKPOINT_NAME
-    state = _resume_state(checkpoint, inputs, paths) if resume else None
+    state = resume_state(checkpoint, inputs, paths) if resume else None
     try:
         result = design(images, config, names=names, fabrication=fabrication, state=state,
                         progress=progress,
-                        on_checkpoint=lambda s: _save_checkpoint(folder, s, inputs))
+                        on_checkpoint=lambda s: save_checkpoint(folder, s, inputs))
     except Interrupted as stop:
-        _save_checkpoint(folder, stop.state, inputs)
+        save_checkpoint(folder, stop.state, inputs)
         raise
-    formats = _formats(out, fabrication) if fabrication is not None else ()
+    formats = part_formats(out, fabrication) if fabrication is not None else ()
     outline = None if result.part is None else result.part.layout.outline_mm
     result = dataclasses.replace(
         result, config=recorded_config(config, fabrication, formats, outline))
@@ -527,127 +417,3 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     return result
 
 
-def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
-                 settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
-                 ) -> Validation:
-    """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
-    write report.json, views.npz and report.html; result.metrics["eye_distribution"] gets the
-    headline over the eye distribution (None when not judged)."""
-    from aperture_fab.io.formats import read_stl
-    from aperture_fab.validation.evidence import assemble
-    from aperture_fab.validation.report import eye_headline, report_json
-
-    if result.part is None:
-        raise ValueError("no part to validate: design with fabrication settings first.")
-    mesh = read_stl(stl)
-    open_fraction, displays = optimum(result.design)
-    checked = validate(result.config, result.targets, displays, open_fraction, result.part,
-                       fabrication.process, result.names, settings, mesh,
-                       built_displays=result.built_displays)
-    start = time.perf_counter()
-    shown = result.design.displays if result.built_displays is None else result.built_displays
-    evidence = assemble(result.config, result.names, result.targets, shown,
-                        result.design.loss_history, result.part, fabrication.process, checked,
-                        result.timings_s, part_file="plate.stl", command=command)
-    evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
-    write_atomic(folder / "views.npz", evidence.views_npz)
-    write_atomic(folder / "report.html", evidence.html)
-    write_atomic(folder / "report.json", report_json(evidence.report))
-    result.metrics["eye_distribution"] = eye_headline(evidence.report)
-    result.verdicts[:] = evidence.report["verdicts"]
-    return checked
-
-
-def _formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
-    """Every format; STEP (slow) only when asked for, by --step or an --out that names it."""
-    step = fabrication.step or out.suffix.lower() in PART_FORMATS["step"].suffixes
-    return tuple(name for name in PART_FORMATS if name != "step" or step)
-
-
-def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
-               formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True,
-               on_written: Callable[[Path], None] | None = None) -> dict[Path, bytes]:
-    """Write the part's files atomically; a format that fails leaves no file behind. Returns
-    each file written with its bytes, in the order written (the checks of the part as written
-    read these, not the disk). on_written: called with the folder after each format's file
-    (run_design's testing seam)."""
-    from tqdm import tqdm
-
-    written: dict[Path, bytes] = {}
-    for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
-        holes = tqdm(total=part.layout.count, desc=f"{fmt} holes", unit="hole", leave=False,
-                     disable=not progress or fmt != "step")
-
-        def advance(done: int, bar: Any = holes) -> None:
-            bar.update(done - bar.n)
-
-        for name, data in part_files(part, (fmt,), fabrication, advance).items():
-            write_atomic(folder / name, data)
-            written[folder / name] = data
-        holes.close()
-        if on_written is not None:
-            on_written(folder)
-    return written
-
-
-def write_outputs(folder: Path, result: DesignResult) -> None:
-    """design.npz, display and view PNGs, loss curve, design.json."""
-    from aperture_fab.validation.figures import figure_loss
-
-    d = result.design
-    buffer = io.BytesIO()
-    shown = d.displays if result.built_displays is None else result.built_displays
-    # The design before quantization, when one was kept: validate judges it as design did.
-    arrays: dict[str, Any] = {
-        "open_fraction": d.open_fraction, "displays": d.displays, "built_displays": shown,
-        "loss_history": d.loss_history, "bounds": np.asarray(d.bounds),
-        "names": np.asarray(result.names)}
-    if d.continuous is not None:
-        arrays["continuous_open_fraction"], arrays["continuous_displays"] = d.continuous
-    np.savez_compressed(buffer, **arrays)
-    write_atomic(folder / "design.npz", buffer.getvalue())
-    write_atomic(folder / "design.toml", to_toml(result.config))
-    for t, name in enumerate(result.names):
-        write_atomic(folder / f"display_{name}.png", encode_png(shown[t]))
-        write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
-        for variant in ("initial", "optimized", "open", "regular_pinholes"):
-            view = result.views[variant][t, 0]
-            scaled = view * gain(view, result.targets[t])
-            write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
-    write_atomic(folder / "loss.png", figure_loss(d.loss_history))
-    write_summary(folder, result)
-
-
-def write_summary(folder: Path, result: DesignResult) -> None:
-    """design.json: the run's numbers (metrics as they are so far) and its config."""
-    d = result.design
-    summary = {
-        "schema_version": 1,
-        "targets": list(result.names),
-        "final_loss": float(d.loss_history[-1]) if len(d.loss_history) else None,
-        "iterations": len(d.loss_history),
-        "stopped": d.stopped,
-        "bounds": list(d.bounds),
-        "metrics": result.metrics,
-        "fabrication": None if result.part is None else _part_summary(result.part),
-        "config": to_dict(result.config),
-    }
-    write_atomic(folder / "design.json", json.dumps(summary, indent=2))
-
-
-def _part_summary(part: Part) -> dict[str, Any]:
-    from aperture_fab.fabrication.layout import layout_stats
-
-    stats = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
-             for k, v in layout_stats(part.layout).items()}
-    return {
-        "layout": stats,
-        "outline_mm": [float(v) for v in part.layout.outline_mm],
-        "violations": [
-            {"rule": v.rule, "cell": v.cell, "value_mm": v.value_mm, "limit_mm": v.limit_mm,
-             "resolution": v.resolution}
-            for v in part.layout.violations
-        ],
-        "mesh": {"watertight": part.report.watertight, "genus": part.report.genus,
-                 "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count},
-    }

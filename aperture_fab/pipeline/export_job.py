@@ -25,7 +25,7 @@ from aperture_fab.io.formats import (
     part_files,
 )
 from aperture_fab.io.manifest import refuse_overwrite
-from aperture_fab.pipeline.design_job import write_part
+from aperture_fab.pipeline.design_files import write_part
 from aperture_fab.pipeline.saved import check_sources, read_design
 
 __all__ = ["Exported", "export", "part_format_of", "read_export_inputs", "run_export"]

@@ -1,0 +1,152 @@
+"""The files of a design folder: the part in every format, design.npz and its pictures,
+design.json, and the report of the part as written."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from aperture_fab.config.config import to_dict, to_toml
+from aperture_fab.fabrication.part import FabricationSettings, Part
+from aperture_fab.io.files import write_atomic
+from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
+from aperture_fab.io.images import encode_png
+from aperture_fab.metrics import gain
+from aperture_fab.validation.validate import Validation, ValidationSettings, validate
+
+if TYPE_CHECKING:  # the job's value; design_job imports this module
+    from aperture_fab.pipeline.design_job import DesignResult
+
+__all__ = ["part_formats", "write_outputs", "write_part", "write_report", "write_summary"]
+
+
+def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
+                 settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
+                 ) -> Validation:
+    """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
+    write report.json, views.npz and report.html; result.metrics["eye_distribution"] gets the
+    headline over the eye distribution (None when not judged)."""
+    from aperture_fab.io.formats import read_stl
+    from aperture_fab.validation.evidence import assemble
+    from aperture_fab.validation.report import eye_headline, report_json
+
+    if result.part is None:
+        raise ValueError("no part to validate: design with fabrication settings first.")
+    mesh = read_stl(stl)
+    open_fraction, displays = result.design.optimum
+    checked = validate(result.config, result.targets, displays, open_fraction, result.part,
+                       fabrication.process, result.names, settings, mesh,
+                       built_displays=result.built_displays)
+    start = time.perf_counter()
+    shown = result.design.displays if result.built_displays is None else result.built_displays
+    evidence = assemble(result.config, result.names, result.targets, shown,
+                        result.design.loss_history, result.part, fabrication.process, checked,
+                        result.timings_s, part_file="plate.stl", command=command)
+    evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
+    write_atomic(folder / "views.npz", evidence.views_npz)
+    write_atomic(folder / "report.html", evidence.html)
+    write_atomic(folder / "report.json", report_json(evidence.report))
+    result.metrics["eye_distribution"] = eye_headline(evidence.report)
+    result.verdicts[:] = evidence.report["verdicts"]
+    return checked
+
+
+def part_formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
+    """Every format; STEP (slow) only when asked for, by --step or an --out that names it."""
+    step = fabrication.step or out.suffix.lower() in PART_FORMATS["step"].suffixes
+    return tuple(name for name in PART_FORMATS if name != "step" or step)
+
+
+def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
+               formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True,
+               on_written: Callable[[Path], None] | None = None) -> dict[Path, bytes]:
+    """Write the part's files atomically; a format that fails leaves no file behind. Returns
+    each file written with its bytes, in the order written (the checks of the part as written
+    read these, not the disk). on_written: called with the folder after each format's file
+    (run_design's testing seam)."""
+    from tqdm import tqdm
+
+    written: dict[Path, bytes] = {}
+    for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
+        holes = tqdm(total=part.layout.count, desc=f"{fmt} holes", unit="hole", leave=False,
+                     disable=not progress or fmt != "step")
+
+        def advance(done: int, bar: Any = holes) -> None:
+            bar.update(done - bar.n)
+
+        for name, data in part_files(part, (fmt,), fabrication, advance).items():
+            write_atomic(folder / name, data)
+            written[folder / name] = data
+        holes.close()
+        if on_written is not None:
+            on_written(folder)
+    return written
+
+
+def write_outputs(folder: Path, result: DesignResult) -> None:
+    """design.npz, display and view PNGs, loss curve, design.json."""
+    from aperture_fab.validation.figures import figure_loss
+
+    d = result.design
+    buffer = io.BytesIO()
+    shown = d.displays if result.built_displays is None else result.built_displays
+    # The design before quantization, when one was kept: validate judges it as design did.
+    arrays: dict[str, Any] = {
+        "open_fraction": d.open_fraction, "displays": d.displays, "built_displays": shown,
+        "loss_history": d.loss_history, "bounds": np.asarray(d.bounds),
+        "names": np.asarray(result.names)}
+    if d.continuous is not None:
+        arrays["continuous_open_fraction"], arrays["continuous_displays"] = d.continuous
+    np.savez_compressed(buffer, **arrays)
+    write_atomic(folder / "design.npz", buffer.getvalue())
+    write_atomic(folder / "design.toml", to_toml(result.config))
+    for t, name in enumerate(result.names):
+        write_atomic(folder / f"display_{name}.png", encode_png(shown[t]))
+        write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
+        for variant in ("initial", "optimized", "open", "regular_pinholes"):
+            view = result.views[variant][t, 0]
+            scaled = view * gain(view, result.targets[t])
+            write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
+    write_atomic(folder / "loss.png", figure_loss(d.loss_history))
+    write_summary(folder, result)
+
+
+def write_summary(folder: Path, result: DesignResult) -> None:
+    """design.json: the run's numbers (metrics as they are so far) and its config."""
+    d = result.design
+    summary = {
+        "schema_version": 1,
+        "targets": list(result.names),
+        "final_loss": float(d.loss_history[-1]) if len(d.loss_history) else None,
+        "iterations": len(d.loss_history),
+        "stopped": d.stopped,
+        "bounds": list(d.bounds),
+        "metrics": result.metrics,
+        "fabrication": None if result.part is None else _part_summary(result.part),
+        "config": to_dict(result.config),
+    }
+    write_atomic(folder / "design.json", json.dumps(summary, indent=2))
+
+
+def _part_summary(part: Part) -> dict[str, Any]:
+    from aperture_fab.fabrication.layout import layout_stats
+
+    stats = {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+             for k, v in layout_stats(part.layout).items()}
+    return {
+        "layout": stats,
+        "outline_mm": [float(v) for v in part.layout.outline_mm],
+        "violations": [
+            {"rule": v.rule, "cell": v.cell, "value_mm": v.value_mm, "limit_mm": v.limit_mm,
+             "resolution": v.resolution}
+            for v in part.layout.violations
+        ],
+        "mesh": {"watertight": part.report.watertight, "genus": part.report.genus,
+                 "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count},
+    }
