@@ -91,7 +91,8 @@ from aperture_fab.io.images import prepare_targets, resample
 from aperture_fab.optics import kernels
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import EyeStates, distribution_of
-from aperture_fab.optics.model import MAX_GRAD_BLOCKS_BYTES, Backend, Renderer, backend_for
+from aperture_fab.optics.fused_views import MAX_GRAD_BLOCKS_BYTES
+from aperture_fab.optics.model import Backend, Renderer, backend_for
 from aperture_fab.optimize import budget
 from aperture_fab.optimize.optimizer import initial_design, optimize, training_states
 from aperture_fab.targets import EXAMPLES
@@ -314,7 +315,7 @@ def kernel_pairs(renderer: Renderer, open_fraction: np.ndarray, states: EyeState
     radius = np.sqrt(np.clip(open_fraction, 0, None).reshape(-1) * (px * py / math.pi) + 1e-12)
     margin = float(radius.max())
     rows = renderer.state_rows(states)
-    extra = renderer._search_extra_mm
+    extra = renderer.search_extra_mm
     shared = bool(np.all(rows[:, 3] == 1.0) and np.all(rows[:, 4] == 1.0))
     vx, vy = eye.view_directions()
     gy, gx = np.meshgrid(vy, vx, indexing="ij")

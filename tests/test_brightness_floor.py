@@ -9,7 +9,8 @@ from conftest import tiny_config
 
 from aperture_fab.config import resolve
 from aperture_fab.config.presets import LIGHT_FLOOR
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import digit
 

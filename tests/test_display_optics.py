@@ -15,7 +15,9 @@ from test_kernels import BATCHES, states, views_and_grads
 from test_model import make_scene, psnr, render
 
 from aperture_fab.config.config import parse_toml, resolve, to_dict, to_toml
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
+from aperture_fab.optics.pair_table import display_optics_at
 from aperture_fab.optics.scene import Display, Scene
 
 #: The issue's example: 0.5 mm of n = 1.5 glass seen at 26 degrees.
@@ -53,7 +55,7 @@ def test_glass_shift_at_26_degrees_is_the_refraction_number():
     renderer = Renderer(scene, dtype=torch.float64, backend="torch")
     gap = scene.plate.gap_mm
     lens = torch.zeros(1, dtype=torch.float64)
-    wx, wy, emission = renderer._display_optics(lens + gap * tan, lens.clone(), lens, lens)
+    wx, wy, emission = display_optics_at(renderer, lens + gap * tan, lens.clone(), lens, lens)
     assert gap * tan - float(wx) == pytest.approx(-x, abs=1e-12)
     assert float(wy) == 0.0 and emission is None
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 from reference_tracer import trace_view
 
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
 
 

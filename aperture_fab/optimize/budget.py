@@ -25,7 +25,7 @@ see `stack_shape`):
   loss's saved square (S x C x N); in the backward, the views' gradients (about LOSS_GRADIENTS
   view-sized buffers while the loss's backward runs), then the float64 copy of the views'
   gradient and the per-thread grad-stack buffers (B x the channels-last stack, B = min(view
-  rows, threads, model.MAX_GRAD_BLOCKS_BYTES / stack bytes)) with their sum, and B x K float64
+  rows, threads, fused_views.MAX_GRAD_BLOCKS_BYTES / stack bytes)) with their sum, and B x K float64
   radius grads; each thread's pair cache (box^2 x ~(PAIR_CACHE_BYTES + 24 C) bytes). A
   tracked design (optimizer.tracking) renders each state through its own solved display: one
   more stack per state and target.
@@ -62,9 +62,10 @@ from typing import Literal
 import torch
 
 from aperture_fab.config.settings import OptimizerSettings
-from aperture_fab.optics import kernels, model
+from aperture_fab.optics import fused_views, kernels, model
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import distribution_of
+from aperture_fab.optics.planes import Optics
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
 __all__ = [
@@ -143,7 +144,7 @@ def _itemsize(dtype: torch.dtype | str) -> int:
 
 def stack_shape(scene: Scene) -> StackShape:
     """The display stack's shape, as `Renderer.__init__` chooses it (levels, padding, FFT)."""
-    optics = model._Optics.of(scene)
+    optics = Optics.of(scene)
     plate, eye, display = scene.plate, scene.eye, scene.display
     window_max = max(abs(optics.window_scale), 1.0) * plate.max_radius_mm
     pixel = min(display.pixel_mm)
@@ -161,8 +162,8 @@ def stack_shape(scene: Scene) -> StackShape:
     return StackShape(levels, height, width, height + size - 1, width + size - 1, size, pad)
 
 
-def _search_extra_mm(scene: Scene) -> float:
-    """The chief-ray tilt at the bottom face (as `Renderer._search_extra_mm`, no offsets)."""
+def search_extra_mm(scene: Scene) -> float:
+    """The chief-ray tilt at the bottom face (as `Renderer.search_extra_mm`, no offsets)."""
     plate, eye = scene.plate, scene.eye
     if plate.hole_axis != "chief_ray":
         return 0.0
@@ -186,7 +187,7 @@ def _reach_mm(scene: Scene, states: int) -> tuple[float, float, float]:
     else:  # E[(p / 2 + g)^2] for p uniform on [lo, hi]
         a, b = lo / 2 + grow, hi / 2 + grow
         typical = math.sqrt((a * a + a * b + b * b) / 3)
-    return largest, typical, _search_extra_mm(scene)
+    return largest, typical, search_extra_mm(scene)
 
 
 def estimate(
@@ -231,7 +232,7 @@ def estimate(
         # The GPU kernels add every gradient into one float64 buffer (atomics): one block.
         gpu = backend == "triton"
         blocks = 1 if gpu else max(1, min(eye.view_pixels[1], threads,
-                                          model.MAX_GRAD_BLOCKS_BYTES // max(1, stack)))
+                                          fused_views.MAX_GRAD_BLOCKS_BYTES // max(1, stack)))
         alive["display stack"] = t * stack  # channels-last copies kept for the backward
         if tracked:  # one solved display per state, rendered on its own
             alive["tracked stacks"] = t * s * stack

@@ -37,7 +37,8 @@ from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.as_made import white_transmission
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.photometry import photometry_settings
 from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import (

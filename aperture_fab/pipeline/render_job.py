@@ -21,7 +21,8 @@ from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import refuse_overwrite
 from aperture_fab.metrics import gain, psnr_db
 from aperture_fab.optics.device import resolve_device, torch_dtype
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Eye, Scene
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,

@@ -20,7 +20,8 @@ import torch
 from aperture_fab.metrics import gain_psnr_db, gains
 from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.optics.eyes import EyeDistribution, EyeStates, distribution_of, percentiles
-from aperture_fab.optics.model import Renderer, render_open_states
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open_states
 from aperture_fab.optics.scene import Scene
 
 __all__ = ["EyeQuality", "Variant", "judge_eyes", "PERCENTILES"]

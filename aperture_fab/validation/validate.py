@@ -64,7 +64,8 @@ from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import distribution_of
-from aperture_fab.optics.model import Renderer, render_open
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
 from aperture_fab.validation.made_part import MADE_COPIES, made_part_block
 from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
