@@ -485,7 +485,7 @@ def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray, device
     renderer = functools.partial(Renderer, backend=backend)
     fused: Any = kernels
     if backend == "triton":
-        from aperture_fab.optics import gpu_kernels as fused
+        from aperture_fab.optics import gpu_walk as fused
     with mock.patch.object(optimize_module, "Renderer", renderer), \
             mock.patch.object(optimize_module, "_design_loss",
                               profile.design_loss(optimize_module._design_loss)), \

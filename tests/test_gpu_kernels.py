@@ -162,8 +162,8 @@ backward = {**common, "grad_out_ptr": "*fp64", "grad_radius_ptr": "*fp64",
             "grad_stack_ptr": "*fp64", **sizes, "n_states": "i32",
             **{k: "constexpr" for k in [*flags, "WANT_STACK"]}}
 target = GPUTarget("cuda", 90, 32)
-for kernel, signature, constants in ((g._forward_kernel, forward, flags),
-                                     (g._backward_kernel, backward,
+for kernel, signature, constants in ((g.forward_kernel, forward, flags),
+                                     (g.backward_kernel, backward,
                                       {**flags, "WANT_STACK": True})):
     triton.compile(ASTSource(kernel, signature, constexprs=constants), target=target,
                    options={"num_warps": g.NUM_WARPS})

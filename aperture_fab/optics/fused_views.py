@@ -110,23 +110,23 @@ class TritonView(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, radius, stack, renderer, rows):
-        from aperture_fab.optics import gpu_kernels
+        from aperture_fab.optics import gpu_walk
 
         _, extra, _, shared, margin, closed = _walk_plan(
             renderer, radius, rows, ctx.needs_input_grad[0])
         vx, vy, offsets, geometry = _gpu_constants(renderer)
-        walk = gpu_kernels.Walk(
+        walk = gpu_walk.Walk(
             radius.detach().double().contiguous(),
             stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
             renderer.kernel_geometry(), geometry, offsets, extra, shared, margin, closed)
         ctx.walk, ctx.dtype = walk, stack.dtype
-        return gpu_kernels.view_forward(walk).to(stack.dtype)
+        return gpu_walk.view_forward(walk).to(stack.dtype)
 
     @staticmethod
     def backward(ctx, grad_view):
-        from aperture_fab.optics import gpu_kernels
+        from aperture_fab.optics import gpu_walk
 
-        grad_radius, grad_stack = gpu_kernels.view_backward(
+        grad_radius, grad_stack = gpu_walk.view_backward(
             ctx.walk, grad_view.detach(), bool(ctx.needs_input_grad[1]))
         out_stack = None
         if grad_stack is not None:

@@ -5,7 +5,8 @@ and the meaning of `states`, `geometry`, `extra`, `margin` and `closed`), writte
 lane per (eye state, view pixel), lanes in blocks of adjacent view pixels, each walking the box
 of holes its footprint can reach and computing every pair's geometry on the fly. Nothing per pair
 is stored, so memory is linear in the plate, the display and the view, never in their product,
-and every eye state of an iteration runs in one launch.
+and every eye state of an iteration runs in one launch (`aperture_fab.optics.gpu_walk`
+launches them).
 
 Forward: one lane per (state, view pixel) writes its view value. Backward: the radius and stack
 gradients are sums over pairs, added with atomics (float64). When every state focuses at
@@ -26,19 +27,16 @@ the CPU kernels that way, and on CUDA where there is one.
 
 from __future__ import annotations
 
-import functools
 import math
 import os
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
 import triton
 import triton.language as tl
 from triton.language.extra import libdevice as _cuda_libdevice
 
-__all__ = ["INTERPRETED", "Walk", "view_backward", "view_forward"]
+__all__ = ["BLOCK", "INTERPRETED", "NUM_WARPS", "backward_kernel", "forward_kernel"]
 
 #: Triton's interpreter runs the kernels (TRITON_INTERPRET=1, read at import as Triton does).
 INTERPRETED = os.environ.get("TRITON_INTERPRET", "0") == "1"
@@ -366,7 +364,7 @@ _SIZES = ["nx", "ny", "L", "H", "W", "box_r", "box_c"]
 
 
 @triton.jit(do_not_specialize=_SIZES)
-def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
+def forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
                     out_ptr, extra, margin, closed, nx, ny, L, H, W, box_r, box_c,
                     C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
                     SHARED: tl.constexpr, OPTICS: tl.constexpr):
@@ -413,7 +411,7 @@ def _forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
 
 
 @triton.jit(do_not_specialize=[*_SIZES, "n_states"])
-def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
+def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
                      grad_out_ptr, grad_radius_ptr, grad_stack_ptr, extra, margin, closed,
                      nx, ny, L, H, W, box_r, box_c, n_states,
                      C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
@@ -500,99 +498,3 @@ def _backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_
                                  L, H, W, C, CP)
 
 
-def _box(outer_mm: float, pitch_mm: float) -> int:
-    """Holes per axis that a disk of radius outer_mm can span from its first one."""
-    return math.floor(2 * outer_mm / pitch_mm) + 2
-
-
-def _walk(states: np.ndarray, geometry: np.ndarray, margin: float, extra: float, shared: bool,
-          union: bool) -> tuple[int, int]:
-    """Box (rows, columns) of holes each lane walks: one state's disk, or (union) the disk
-    around every state's, as `_span` places them."""
-    outer = (states[:, 2] + margin) if shared else (states[:, 7] + extra)
-    spread = np.ptp(states[:, :2], axis=0) if union else np.zeros(2)
-    return (_box(float(outer.max() + spread[1] / 2), float(geometry[3])),
-            _box(float(outer.max() + spread[0] / 2), float(geometry[2])))
-
-
-@dataclass(frozen=True)
-class Walk:
-    """What the kernels read, on one device (as `aperture_fab.optics.kernels`' arguments).
-
-    radius: (K,) float64 hole radii, mm. stack: (L, H, W, C) channels-last display stack, in
-    its own dtype. vx, vy: (nx,), (ny,) float64 view directions (tan). states: (S, 8) and
-    geometry: (len(GEOMETRY_FIELDS),) float64 numpy rows; device_geometry: the same row on the
-    stack's device. offsets: (K, 2) float64 hole displacements, mm. extra, margin, closed: mm;
-    shared: every state focuses at infinity.
-    """
-
-    radius: torch.Tensor
-    stack: torch.Tensor
-    vx: torch.Tensor
-    vy: torch.Tensor
-    states: np.ndarray
-    geometry: np.ndarray
-    device_geometry: torch.Tensor
-    offsets: torch.Tensor
-    extra: float
-    shared: bool
-    margin: float
-    closed: float
-
-    def __post_init__(self) -> None:
-        for name in ("radius", "vx", "vy", "offsets", "device_geometry"):
-            value = getattr(self, name)
-            if value.dtype != torch.float64 or not value.is_contiguous():
-                raise TypeError(f"Walk.{name} must be a contiguous float64 tensor; got "
-                                f"{value.dtype}.")
-        if self.stack.dim() != 4 or not self.stack.is_contiguous():
-            raise TypeError("Walk.stack must be a contiguous (L, H, W, C) tensor (channels "
-                            f"last); got shape {tuple(self.stack.shape)}.")
-
-    @functools.cached_property
-    def _args(self) -> tuple[Any, ...]:
-        """The kernels' tensor arguments; the states copied to the device once per walk (the
-        forward's and the backward's), without waiting for the GPU's queue."""
-        rows = torch.from_numpy(np.ascontiguousarray(self.states, dtype=np.float64))
-        if self.stack.is_cuda:
-            rows = rows.pin_memory()
-        rows = rows.to(self.stack.device, non_blocking=True)
-        return (self.radius, self.offsets, self.stack, self.vx, self.vy, rows,
-                self.device_geometry)
-
-    @property
-    def _optics(self) -> bool:
-        return bool(self.geometry[17] > 0 or self.geometry[19] > 0)
-
-
-def view_forward(walk: Walk) -> torch.Tensor:
-    """Views (S, C, ny, nx) float64 (see `aperture_fab.optics.kernels.view_forward`)."""
-    levels, height, width, channels = walk.stack.shape
-    nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
-    out = torch.empty((count, channels, ny, nx), dtype=torch.float64, device=walk.stack.device)
-    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
-                         union=False)
-    _forward_kernel[(triton.cdiv(nx * ny, BLOCK), count)](
-        *walk._args, out, walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width,
-        box_r, box_c, C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK,
-        SHARED=walk.shared, OPTICS=walk._optics, num_warps=NUM_WARPS)
-    return out
-
-
-def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
-                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Gradients of sum(grad_out * view) (grad_out (S, C, ny, nx)) in the radii (K,) float64
-    and, when want_stack, the stack (L, H, W, C) float64."""
-    levels, height, width, channels = walk.stack.shape
-    nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
-    grad_radius = torch.zeros_like(walk.radius)
-    grad_stack = torch.zeros(walk.stack.shape if want_stack else (1,), dtype=torch.float64,
-                             device=walk.stack.device)
-    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
-                         union=walk.shared)
-    _backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
-        *walk._args, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
-        walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width, box_r, box_c, count,
-        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
-        OPTICS=walk._optics, WANT_STACK=want_stack, num_warps=NUM_WARPS)
-    return grad_radius, (grad_stack if want_stack else None)
