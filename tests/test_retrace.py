@@ -25,24 +25,21 @@ from aperture_fab.io.formats import read_stl, stl_bytes
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Display, Eye, Plate, Scene, display_fov_deg
 from aperture_fab.targets import star
-from aperture_fab.validation.retrace import (
+from aperture_fab.validation.retrace import TracedView, trace_mesh_view
+from aperture_fab.validation.retrace_holes import Disks, clear_radius, disk_neighbours
+from aperture_fab.validation.retrace_rays import outline_hull
+from aperture_fab.validation.retrace_sampling import (
     CHORD_BUDGET,
     DEFAULT_SAMPLES,
     LEAST_CHORDS,
     MOST_SAMPLES,
     RAY_BUDGET,
     REPLICATES,
-    TracedView,
-    _budget,
-    _cap_angle,
-    _clear_radius,
-    _concentric_disk,
-    _disk_neighbours,
-    _Disks,
-    _lens_sample,
-    _outline_hull,
-    _strata,
-    trace_mesh_view,
+    cap_angle,
+    concentric_disk,
+    lens_sample,
+    sample_budget,
+    strata,
 )
 from aperture_fab.validation.validate import layout_fractions
 
@@ -248,7 +245,7 @@ def overlapping_holes_mesh() -> tuple[Scene, PlateMesh]:
 
 def test_overlapping_hole_disks_are_counted_once():
     scene, mesh = overlapping_holes_mesh()
-    assert _Disks.of(mesh_hole_loops(mesh), mesh).neighbours.shape[1] > 0
+    assert Disks.of(mesh_hole_loops(mesh), mesh).neighbours.shape[1] > 0
     display = np.kron(np.random.default_rng(3).random((1, 6, 6)), np.ones((8, 8)))
     holes = trace_mesh_view(mesh, scene, display, samples_per_pixel=64, seed=1)
     pupil = trace_mesh_view(mesh, scene, display, samples_per_pixel=4096, seed=2,
@@ -261,7 +258,7 @@ def test_disk_neighbours_are_the_overlapping_pairs():
     rng = np.random.default_rng(0)
     centre = rng.uniform(0, 5, (300, 2))
     radius = rng.uniform(0.05, 0.3, 300)
-    table = _disk_neighbours(centre, radius)
+    table = disk_neighbours(centre, radius)
     gap = np.linalg.norm(centre[:, None] - centre[None], axis=2)
     want = (gap < radius[:, None] + radius[None]) & ~np.eye(300, dtype=bool)
     got = np.zeros_like(want)
@@ -330,7 +327,7 @@ def test_the_mount_blocks_rays_outside_the_outline(sampling):
 
 def test_outline_hull_is_the_chamfered_outline():
     _, part, _, _ = random_case("straight")
-    hull = _outline_hull(written_mesh(part).vertices[:, :2])
+    hull = outline_hull(written_mesh(part).vertices[:, :2])
     expected = np.array(outline_points_mm(part.layout, part.corner_cut_mm))
     assert part.corner_cut_mm > 0 and len(hull) == len(expected) == 5
     # Same points, same (counter-clockwise) order, up to the starting point and float32.
@@ -345,7 +342,7 @@ def test_outline_hull_is_the_chamfered_outline():
 @given(st.integers(min_value=1, max_value=300))
 def test_strata_tile_the_unit_square(n):
     """n strata of area 1 / n each, covering every point of the square exactly once."""
-    corner, size = _strata(n)
+    corner, size = strata(n)
     np.testing.assert_allclose(size.prod(axis=1), 1.0 / n, rtol=1e-12)
     grid = (np.arange(97) + 0.5) / 97
     px, py = (g.ravel() for g in np.meshgrid(grid, grid))
@@ -358,7 +355,7 @@ def test_strata_tile_the_unit_square(n):
 def test_concentric_map_is_uniform_on_the_disk():
     """Uniform points of the square land uniformly in the unit disk: r^2 and angle uniform."""
     rng = np.random.default_rng(0)
-    x, y = _concentric_disk(rng.random(200_000), rng.random(200_000))
+    x, y = concentric_disk(rng.random(200_000), rng.random(200_000))
     r2 = x**2 + y**2
     assert r2.max() <= 1 + 1e-12
     counts = np.histogram(r2, bins=10, range=(0, 1))[0]
@@ -406,9 +403,9 @@ def test_samples_round_up_to_whole_replicates(sampling):
 @pytest.mark.parametrize("chords, budget, least", [(True, CHORD_BUDGET, LEAST_CHORDS),
                                                    (False, RAY_BUDGET, DEFAULT_SAMPLES["holes"])])
 def test_the_budget_gives_dense_plates_fewer_samples_per_pair(chords, budget, least):
-    assert _budget(1000, chords) == MOST_SAMPLES
-    assert _budget(budget // 100, chords) == 100
-    assert _budget(100 * budget, chords) == least
+    assert sample_budget(1000, chords) == MOST_SAMPLES
+    assert sample_budget(budget // 100, chords) == 100
+    assert sample_budget(100 * budget, chords) == least
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -457,7 +454,7 @@ def clear_radius_of(mesh: PlateMesh) -> tuple[np.ndarray, Any]:
     z = mesh.vertices[:, 2]
     low = loops.bottom_centroid_mm + loops.axes * float(z.min())
     cap = np.maximum(loops.top_circum_radius_mm, loops.bottom_circum_radius_mm)
-    return _clear_radius(mesh, low, loops.top_centroid_mm, (float(z.min()), float(z.max())),
+    return clear_radius(mesh, low, loops.top_centroid_mm, (float(z.min()), float(z.max())),
                          cap), loops
 
 
@@ -494,7 +491,7 @@ def test_clear_cylinders_decide_rays_as_embree_does(case, monkeypatch):
     """The rays passed through a clear cylinder without a cast are rays Embree finds clear:
     with every ray cast (a margin too wide for any cylinder) the view is the same, to
     rounding, and so are the rays counted."""
-    from aperture_fab.validation import retrace
+    from aperture_fab.validation import retrace_holes
 
     if case == "thin":  # a 5 um plate (the photomask default): nearly every ray is clear
         scene = make_scene(thickness=0.005, cells=20)
@@ -504,9 +501,9 @@ def test_clear_cylinders_decide_rays_as_embree_does(case, monkeypatch):
     else:
         scene, part, _, display = random_case(case)
     mesh = written_mesh(part)
-    monkeypatch.setattr(retrace, "MIN_BOX_PX", math.inf)  # rays only: no chords
+    monkeypatch.setattr(retrace_holes, "MIN_BOX_PX", math.inf)  # rays only: no chords
     fast = trace_mesh_view(mesh, scene, display, samples_per_pixel=16, seed=5)
-    monkeypatch.setattr(retrace, "CLEAR_RTOL", 1.0)
+    monkeypatch.setattr(retrace_holes, "CLEAR_RTOL", 1.0)
     cast = trace_mesh_view(mesh, scene, display, samples_per_pixel=16, seed=5)
     assert fast.rays_cast == cast.rays_cast > 0
     np.testing.assert_allclose(fast.view, cast.view, rtol=1e-12, atol=1e-15)
@@ -523,14 +520,14 @@ def test_chords_agree_with_rays(axis, clear, monkeypatch):
     no ray meets the mesh) estimate what rays do: pixel by pixel within the standard errors and
     in the mean, against the per-ray path; without clear cylinders (every ray cast) they fall
     back to rays decided by Embree, and still agree."""
-    from aperture_fab.validation import retrace
+    from aperture_fab.validation import retrace_holes
 
     scene, part, _, display = random_case(axis)
     mesh = written_mesh(part)
     if not clear:
-        monkeypatch.setattr(retrace, "CLEAR_RTOL", 1.0)
+        monkeypatch.setattr(retrace_holes, "CLEAR_RTOL", 1.0)
     chords = trace_mesh_view(mesh, scene, display, samples_per_pixel=64, seed=1)
-    monkeypatch.setattr(retrace, "MIN_BOX_PX", math.inf)
+    monkeypatch.setattr(retrace_holes, "MIN_BOX_PX", math.inf)
     rays = trace_mesh_view(mesh, scene, display, samples_per_pixel=64, seed=2)
     assert 0.6 <= pooled_ratio(chords, rays) <= 1.5
     assert_same_mean(chords, rays)
@@ -540,7 +537,7 @@ def test_a_siemens_star_is_traced_within_35_db(monkeypatch):
     """Dense edges at every orientation (a Siemens star on the display, behind the default
     0.005 mm photomask film), at the fewest chords per pair the budget gives: the trace agrees
     with the exact model at 35 dB or better, where rays alone (as many per pair) reach ~32."""
-    from aperture_fab.validation import retrace
+    from aperture_fab.validation import retrace_holes
 
     scene = make_scene(thickness=0.005)
     part = make_part(np.random.default_rng(3).uniform(0.05, 0.5, (20, 20)), scene,
@@ -550,7 +547,7 @@ def test_a_siemens_star_is_traced_within_35_db(monkeypatch):
     model = model_view(scene, layout_fractions(part.layout), display)
     traced = trace_mesh_view(mesh, scene, display, samples_per_pixel=LEAST_CHORDS, seed=1)
     assert psnr(traced.view, model) >= 35.0
-    monkeypatch.setattr(retrace, "MIN_BOX_PX", math.inf)
+    monkeypatch.setattr(retrace_holes, "MIN_BOX_PX", math.inf)
     rays = trace_mesh_view(mesh, scene, display, samples_per_pixel=LEAST_CHORDS, seed=1)
     assert psnr(traced.view, model) >= psnr(rays.view, model) + 3.0
 
@@ -561,9 +558,9 @@ def test_a_siemens_star_is_traced_within_35_db(monkeypatch):
 def test_cap_angle_inverts_the_cap_area():
     theta = np.linspace(0, np.pi, 20001)
     area = theta - np.sin(theta) * np.cos(theta)
-    np.testing.assert_allclose(_cap_angle(area), theta, atol=1e-6)  # cube-root flat at 0
-    np.testing.assert_allclose(_cap_angle(area) - np.sin(_cap_angle(area))
-                               * np.cos(_cap_angle(area)), area, atol=1e-14)
+    np.testing.assert_allclose(cap_angle(area), theta, atol=1e-6)  # cube-root flat at 0
+    np.testing.assert_allclose(cap_angle(area) - np.sin(cap_angle(area))
+                               * np.cos(cap_angle(area)), area, atol=1e-14)
 
 
 @settings(max_examples=30, deadline=None)
@@ -576,7 +573,7 @@ def test_lens_sample_is_uniform_over_the_lens(r, s, d, angle):
     b = a + d * np.array([np.cos(angle), np.sin(angle)])
     rng = np.random.default_rng(0)
     m = 20000
-    points, area = _lens_sample(a[None], np.array([r]), b[None], np.array([s]),
+    points, area = lens_sample(a[None], np.array([r]), b[None], np.array([s]),
                                 rng.random((1, m, 2)))
     step = 0.01
     grid = np.stack(np.meshgrid(np.arange(-2.5, 6.5, step), np.arange(-4.5, 4.5, step)), axis=-1)

@@ -110,7 +110,7 @@ class ValidationSettings:
         0.14 mm, 0.4 deg.
     eye_sigma_mm: eye position error across the eyebox (1 sigma, each axis).
     mesh_samples: rays per (view pixel, hole) pair for the mesh re-trace (0 skips it; None:
-        a budget of about retrace.RAY_BUDGET rays, 12 to 256 per pair).
+        a budget of about retrace_sampling.RAY_BUDGET rays, 12 to 256 per pair).
     diffraction: render the diffraction-aware view.
     seed: random seed (random mask, tolerance samples, ray sampling).
     eye_states: states of the evaluation set over the eye distribution (`robustness`); 0 skips
