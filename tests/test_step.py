@@ -20,15 +20,14 @@ from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.quantize import quantize
 from aperture_fab.fabrication.step import (
-    HOLES_PER_TILE_SIDE,
     STRAIGHT_AXIS_LIMIT,
     StepSummary,
     build_solid,
     read_step_summary,
     shape_summary,
     step_bytes,
-    tile_count,
 )
+from aperture_fab.fabrication.step_layout import HOLES_PER_TILE_SIDE, tile_count
 from aperture_fab.optics.scene import Plate
 
 # aperture_fab.fabrication.step imports OCP only inside its functions.
