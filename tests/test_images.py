@@ -15,10 +15,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from PIL import Image
 
+from aperture_fab.io.decode import MAX_IMAGE_PIXELS, decode_image
 from aperture_fab.io.images import (
-    MAX_IMAGE_PIXELS,
     TargetWarning,
-    decode_image,
     encode_png,
     is_grey,
     linear_to_srgb,

@@ -19,13 +19,13 @@ from PIL import Image
 
 from aperture_fab import cli
 from aperture_fab.cli import flags
+from aperture_fab.io.decode import decode_image
 from aperture_fab.io.files import load_targets
 from aperture_fab.io.images import (
     ALPHA_BACKGROUNDS,
     TARGET_FITS,
     TargetOptions,
     TargetWarning,
-    decode_image,
     encode_png,
     fit_target,
     prepare_targets,

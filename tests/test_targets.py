@@ -12,7 +12,8 @@ import pytest
 from PIL import ImageFont
 
 from aperture_fab import targets
-from aperture_fab.io.images import decode_image, is_grey, linear_to_srgb
+from aperture_fab.io.decode import decode_image
+from aperture_fab.io.images import is_grey, linear_to_srgb
 from aperture_fab.targets import (
     EXAMPLES,
     asymmetric_marker,

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from aperture_fab.io.decode import decode_image
 from aperture_fab.io.formats import PART_SUFFIXES
-from aperture_fab.io.images import TargetOptions, decode_image, fit_target
+from aperture_fab.io.images import TargetOptions, fit_target
 
 __all__ = ["load_targets", "output_folder", "read_text", "write_atomic"]
 
