@@ -21,7 +21,7 @@ from conftest import require_tool
 from aperture_fab.cli import main
 from aperture_fab.config.presets import PHOTOMASK_EMULSION_MM
 from aperture_fab.fabrication.coupon import coupon_layout
-from aperture_fab.fabrication.mesh import check_mesh, manifold_check
+from aperture_fab.fabrication.mesh_checks import check_mesh, manifold_check
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.io.formats import holes_csv, read_stl
 from aperture_fab.io.manifest import MANIFEST_NAME, check_folder

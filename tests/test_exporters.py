@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.mesh import build_mesh, check_mesh
+from aperture_fab.fabrication.mesh import build_mesh
+from aperture_fab.fabrication.mesh_checks import check_mesh
 from aperture_fab.io.formats import (
     dxf_bytes,
     holes_csv,

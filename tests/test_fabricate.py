@@ -11,7 +11,7 @@ import pytest
 
 from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_REPORT_FAIL, main
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.mesh import check_mesh, mesh_volume_mm3
+from aperture_fab.fabrication.mesh_checks import check_mesh, mesh_volume_mm3
 from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
 from aperture_fab.fabrication.process import PROCESSES, UnmakeableError, resolve_process
 from aperture_fab.io.formats import read_stl

@@ -14,14 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.mesh import (
-    PlateMesh,
-    build_mesh,
-    check_mesh,
-    manifold_check,
-    mesh_volume_mm3,
-    segment_count,
-)
+from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, segment_count
+from aperture_fab.fabrication.mesh_checks import check_mesh, manifold_check, mesh_volume_mm3
 from aperture_fab.io.formats import read_stl, stl_bytes
 
 #: Largest lateral shift of a tilted hole at either face, as a share of the pitch.

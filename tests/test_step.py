@@ -376,7 +376,7 @@ def test_cad_mount_frame_volume_and_placement(tmp_path: Path) -> None:
 def test_part_files_step_carries_the_parts_chamfer() -> None:
     # The STEP part must match the mesh (and DXF/SVG) outline: the same chamfer, same volume.
     from aperture_fab.config.config import resolve
-    from aperture_fab.fabrication.mesh import mesh_volume_mm3
+    from aperture_fab.fabrication.mesh_checks import mesh_volume_mm3
     from aperture_fab.fabrication.part import fabrication_settings, make_part
     from aperture_fab.io.formats import part_files
 

@@ -55,7 +55,7 @@ from aperture_fab.config.settings import (
     TRACKINGS,
     OptimizerSettings,
 )
-from aperture_fab.optics.eyes import EYEBOX_SHAPES
+from aperture_fab.optics.eye_fields import EYEBOX_SHAPES
 from aperture_fab.optics.scene import (
     EMISSIONS,
     HOLE_AXES,

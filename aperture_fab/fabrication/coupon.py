@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.mesh import build_mesh, check_mesh
+from aperture_fab.fabrication.mesh import build_mesh
+from aperture_fab.fabrication.mesh_checks import check_mesh
 from aperture_fab.fabrication.part import CORNER_CUT_SHARE, Part, chord_tolerance_mm
 from aperture_fab.fabrication.process import Process
 from aperture_fab.optics.scene import Plate

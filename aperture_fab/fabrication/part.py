@@ -13,7 +13,8 @@ from typing import Any, Literal
 import numpy as np
 
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.mesh import MeshReport, PlateMesh, build_mesh, check_mesh
+from aperture_fab.fabrication.mesh import PlateMesh, build_mesh
+from aperture_fab.fabrication.mesh_checks import MeshReport, check_mesh
 from aperture_fab.fabrication.process import Process, UnmakeableError, resolve_process
 from aperture_fab.fabrication.quantize import made_sizes, quantize
 from aperture_fab.fabrication.rules import open_fraction_bounds

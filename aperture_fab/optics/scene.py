@@ -16,7 +16,8 @@ from typing import Literal
 
 import numpy as np
 
-from aperture_fab.optics.eyes import ROTATION_MM, EyeboxShape, check_fields
+from aperture_fab.optics.eye_fields import EyeboxShape, check_fields
+from aperture_fab.optics.eyes import ROTATION_MM
 
 __all__ = [
     "HoleAxis",

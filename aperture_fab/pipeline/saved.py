@@ -19,7 +19,8 @@ import numpy as np
 
 from aperture_fab.config.config import Config, parse_toml, resolve
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.mesh import PlateMesh, check_mesh
+from aperture_fab.fabrication.mesh import PlateMesh
+from aperture_fab.fabrication.mesh_checks import check_mesh
 from aperture_fab.fabrication.part import FabricationSettings, Part, build_part, make_part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.fabrication.quantize import quantize
