@@ -1088,7 +1088,8 @@ def test_config_value(inputs: Path, capsys: pytest.CaptureFixture[str],
                                                          f"{_toml_value(v.value)}")
                                             for v in CONFIG_VALUES if v.outcome is None])
 def test_config_value_in_range_is_taken_as_given(key: str, value: Any) -> None:
-    from aperture_fab.config.config import parse_toml, resolve, to_dict, to_toml
+    from aperture_fab.config.config import parse_toml, resolve
+    from aperture_fab.config.written import to_dict, to_toml
 
     config = resolve(None, parse_toml(_with_value(key, value), "in range"))
     section, _, name = key.partition(".")

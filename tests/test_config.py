@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve
 from aperture_fab.config.presets import (
     DEFAULT_PRESET,
     DEFAULT_PROCESS,
@@ -25,6 +25,7 @@ from aperture_fab.config.presets import (
     preset_summary,
 )
 from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.config.written import to_dict, to_toml
 from aperture_fab.optics.scene import Display, Eye, Plate
 
 

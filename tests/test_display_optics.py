@@ -14,7 +14,8 @@ from reference_tracer import trace_view
 from test_kernels import BATCHES, states, views_and_grads
 from test_model import make_scene, psnr, render
 
-from aperture_fab.config.config import parse_toml, resolve, to_dict, to_toml
+from aperture_fab.config.config import parse_toml, resolve
+from aperture_fab.config.written import to_dict, to_toml
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.pair_table import display_optics_at

@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from aperture_fab.config.config import to_dict
+from aperture_fab.config.written import to_dict
 from aperture_fab.metrics import METRIC_KEYS
 from aperture_fab.optics.photometry import PhotometrySettings
 from aperture_fab.validation.figures import (

@@ -5,6 +5,7 @@ of the stages that are not the scene.
 ``to_toml`` writes it back so that a run can be repeated exactly.
 """
 
-from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve, to_dict, to_toml
+from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve
+from aperture_fab.config.written import to_dict, to_toml
 
 __all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]

@@ -68,7 +68,7 @@ from aperture_fab.optics.scene import (
     eyebox_margin_mm,
 )
 
-__all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]
+__all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve"]
 
 #: The keys each known section allows, in the order `to_toml` writes them.
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
@@ -223,7 +223,7 @@ def _merge(into: dict[str, Any], new: Mapping[str, Any]) -> None:
         if isinstance(value, Mapping) and isinstance(into.get(key), dict):
             _merge(into[key], value)
         else:
-            into[key] = _thaw(value)  # a deep copy, so later merges never touch the source
+            into[key] = thaw(value)  # a deep copy, so later merges never touch the source
 
 
 def _add_document(layers: _Layers, doc: Mapping[str, Any], rank: int, label: str) -> None:
@@ -382,12 +382,12 @@ def _freeze(value: Any) -> Any:
     return value
 
 
-def _thaw(value: Any) -> Any:
+def thaw(value: Any) -> Any:
     """Plain dicts and lists from a frozen value."""
     if isinstance(value, Mapping):
-        return {k: _thaw(v) for k, v in value.items()}
+        return {k: thaw(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_thaw(v) for v in value]
+        return [thaw(v) for v in value]
     return value
 
 
@@ -487,52 +487,3 @@ def resolve(
 # Writing
 
 
-def _range_value(bounds: tuple[float, float] | None) -> Any:
-    return NOMINAL if bounds is None else list(bounds)
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    """The fully resolved config as plain dicts and lists, in the TOML file's shape: every value
-    explicit, so a written config re-runs the same even if a default changes; only a field of
-    view derived from the geometry stays "display", so it follows a changed gap or eyebox."""
-    display, plate, eye = config.scene.display, config.scene.plate, config.scene.eye
-    opt = config.optimizer
-    sections: dict[str, dict[str, Any]] = {
-        "display": {"width_mm": display.width_mm, "height_mm": display.height_mm,
-                    "pixels": list(display.pixels),
-                    **{key: getattr(display, key) for key in SECTION_KEYS["display"][3:]}},
-        "plate": {"cells": list(plate.cells), "pitch_mm": list(plate.pitch_mm),
-                  "gap_mm": plate.gap_mm, "thickness_mm": plate.thickness_mm,
-                  "hole_axis": plate.hole_axis},
-        "eye": {"pupil_mm": eye.pupil_mm, "eye_relief_mm": eye.eye_relief_mm,
-                "focus_mm": INFINITY if eye.focus_mm is None else eye.focus_mm,
-                "fov_deg": DISPLAY_FOV if config.fov_from_display else list(eye.fov_deg),
-                "view_pixels": list(eye.view_pixels),
-                "positions_mm": [list(p) for p in eye.positions_mm],
-                "weights": list(eye.weights), "eyebox_mm": list(eye.eyebox_mm),
-                "eyebox_shape": eye.eyebox_shape,
-                "pupil_range_mm": _range_value(eye.pupil_range_mm),
-                "focus_range_diopters": _range_value(eye.focus_range_diopters),
-                "gaze_deg": eye.gaze_deg, "rotation_mm": eye.rotation_mm},
-        "optimizer": {key: getattr(opt, key) for key in SECTION_KEYS["optimizer"]},
-    }
-    return {"preset": config.preset, **sections, **_thaw(config.extra)}
-
-
-#: The first line of a written config.
-TOML_HEADER = ("# aperture-fab configuration, fully resolved: every value explicit (fov_deg in "
-               'degrees, or "display": derived from the geometry, its value in the comment).')
-
-
-def to_toml(config: Config) -> str:
-    """The fully resolved config as TOML text; resolving the parsed text gives `config` back."""
-    # tomlkit writes a table's keys one per line before its sub-tables, arrays on one line,
-    # floats as repr (the shortest text that reads back to the same float) and escapes what
-    # TOML requires. The checkpoint's config digest (pipeline.checkpoint.input_digests) hashes
-    # this text: tests/test_config.py holds the layout, so a tomlkit upgrade that changed it
-    # is seen before it makes checkpoints refuse --resume.
-    document = tomlkit.item(to_dict(config))
-    if config.fov_from_display:
-        fov_x, fov_y = config.scene.eye.fov_deg
-        document["eye"]["fov_deg"].comment(f"{fov_x:.2f} x {fov_y:.2f} deg here")
-    return f"{TOML_HEADER}\n{tomlkit.dumps(document)}"

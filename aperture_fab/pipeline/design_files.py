@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from aperture_fab.config.config import to_dict, to_toml
+from aperture_fab.config.written import to_dict, to_toml
 from aperture_fab.fabrication.part import FabricationSettings, Part
 from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.config.config import Config, parse_toml, resolve, to_toml
+from aperture_fab.config.config import Config, parse_toml, resolve
 from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.config.written import to_toml
 from aperture_fab.fabrication.part import (
     FabricationSettings,
     Part,

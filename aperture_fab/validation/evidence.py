@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from aperture_fab.config.config import Config, to_dict
+from aperture_fab.config.config import Config
+from aperture_fab.config.written import to_dict
 from aperture_fab.fabrication.layout import layout_stats
 from aperture_fab.fabrication.mesh import outline_points_mm
 from aperture_fab.fabrication.part import Part

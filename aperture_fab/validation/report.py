@@ -41,7 +41,7 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
     timings_s       {stage: seconds}
     scene           `scene_dict(scene)`: display, plate, eye (focus_mm null = infinity; the eye
                     distribution's keys as in the config, its ranges resolved to [lo, hi])
-    config          the resolved config (aperture_fab.config.config.to_dict)
+    config          the resolved config (aperture_fab.config.written.to_dict)
     versions        {package: version}
 
 EYE_DISTRIBUTION (every per-target list in the order of "targets"):
