@@ -94,7 +94,8 @@ from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.fused_views import MAX_GRAD_BLOCKS_BYTES
 from aperture_fab.optics.model import Backend, Renderer, backend_for
 from aperture_fab.optimize import budget
-from aperture_fab.optimize.optimizer import initial_design, optimize, training_states
+from aperture_fab.optimize.optimizer import optimize, training_states
+from aperture_fab.optimize.start import initial_design
 from aperture_fab.targets import EXAMPLES
 
 DEVICES = ("auto", "cpu", "cuda")

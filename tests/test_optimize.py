@@ -20,13 +20,8 @@ from aperture_fab.config.config import Config
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import (
-    DivergedError,
-    Interrupted,
-    MaskDesign,
-    initial_design,
-    optimize,
-)
+from aperture_fab.optimize.optimizer import DivergedError, Interrupted, MaskDesign, optimize
+from aperture_fab.optimize.start import initial_design
 from aperture_fab.targets import asymmetric_marker, checker
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -449,7 +449,7 @@ def test_example_sweep_file_checks() -> None:
     makeable). Its whole --dry-run, the rendered checks too (15 s of near-eye renders), runs
     in tests/test_docs_commands.py, as docs/sweep.md gives it."""
     from aperture_fab.fabrication.rules import check_plate
-    from aperture_fab.sweep.run import Resolver
+    from aperture_fab.sweep.preflight import Resolver
     from aperture_fab.sweep.spec import check_points
     from aperture_fab.sweep.worker import plain
 

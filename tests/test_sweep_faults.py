@@ -445,7 +445,7 @@ def test_light_floor_screen_is_a_lower_bound(sweep_dir: Path) -> None:
     from aperture_fab.optics.model import Renderer
     from aperture_fab.optimize.optimizer import training_states
     from aperture_fab.pipeline.design_job import FLOOR_SCREEN_STRIDES, _white_reach
-    from aperture_fab.sweep.run import Resolver
+    from aperture_fab.sweep.preflight import Resolver
 
     spec = load_spec(write_sweep(sweep_dir, "[sweep]\ntargets = ['marker.png']\n"
                                  "[grid]\n'plate.gap_mm' = [8.0]\n" + TINY_BASE))

@@ -23,12 +23,12 @@ from aperture_fab.errors import Refused
 from aperture_fab.fabrication.quantize import MadeSizes
 from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.as_made import MadeDraw, MadeOptics, draw_errors, made_views
-from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
 from aperture_fab.optimize.budget import check_budget
+from aperture_fab.optimize.start import initial_state
 
 __all__ = [
     "MaskDesign",
@@ -38,15 +38,12 @@ __all__ = [
     "position_states",
     "training_states",
     "optimize",
-    "initial_design",
     "fit_display",
     "made_draw",
 ]
 
 #: The cosine schedule decays the learning rate to this share of its start.
 COSINE_FLOOR = 0.05
-#: Initial logit span: closed cells start at this share of the allowed range, so they can open.
-INIT_CLOSED_SHARE = 0.02
 #: Share of the snapped iterations after which only the display content moves (0.75 rather
 #: than 0.5: the plate's last quarter of moves gained 0.2 to 0.3 dB p10, and a quarter of the
 #: run still fits the display to the settled plate).
@@ -100,51 +97,6 @@ class Interrupted(Exception):
 
 class DivergedError(Refused, FloatingPointError):
     """The loss became NaN or infinite."""
-
-
-def _logit(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp(1e-4, 1 - 1e-4)
-    return torch.log(x) - torch.log1p(-x)
-
-
-def _initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Tensor,
-                   settings: OptimizerSettings, bounds: tuple[float, float],
-                   smallest_made: float = 0.0) -> dict[str, Any]:
-    """The starting state. smallest_made: the smallest open fraction the process makes (0:
-    any); the pinhole start's holes are at least that, or the snapped plate would start
-    closed, black, with no gradient to open it (laser, fdm: their smallest hole is above the
-    scene's optimal pinhole)."""
-    lo, hi = bounds
-    rows, cols = scene.plate.cells[1], scene.plate.cells[0]
-    gen = torch.Generator().manual_seed(settings.seed)
-    displays = target_displays.clone()
-    if settings.init == "random":
-        share = torch.rand(rows, cols, generator=gen, dtype=torch.float64)
-    elif settings.init == "uniform":
-        share = torch.full((rows, cols), 0.5, dtype=torch.float64)
-    else:
-        array = regular_pinholes(scene, min_fraction=max(lo, smallest_made))
-        a = torch.as_tensor(array.open_fraction)
-        share = torch.where(a > 0, (a - lo) / (hi - lo), torch.full_like(a, INIT_CLOSED_SHARE))
-        share = share.clamp(INIT_CLOSED_SHARE, 1 - INIT_CLOSED_SHARE)
-        if settings.display == "optimized":
-            displays = torch.stack([elemental_display(scene, array, t) for t in targets])
-    state: dict[str, Any] = {
-        "iteration": 0,
-        "history": [],
-        "best": math.inf,
-        "best_iteration": 0,
-        "mask_logits": _logit(share),
-        # Display content is optimized directly and projected onto [0, 1] after each step: a
-        # sigmoid would freeze the black and white pixels that elemental images are full of.
-        "display": displays.clamp(0, 1) if settings.display == "optimized" else None,
-        "optimizer": None,
-        # Fabrication-aware phase: the first iteration that sees makeable holes, and the
-        # design just before it.
-        "snap_from": settings.iterations - round(settings.quantize_share * settings.iterations),
-        "continuous": None,
-    }
-    return state
 
 
 def _snapped(a: torch.Tensor, made: MadeSizes) -> torch.Tensor:
@@ -269,20 +221,6 @@ def made_draw(scene: Scene, settings: OptimizerSettings, optics: MadeOptics | No
     return draw_errors((scene.plate.cells[1], scene.plate.cells[0]), optics, rng)
 
 
-def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,
-                   settings: OptimizerSettings, bounds: tuple[float, float] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The optimizer's starting point: open fractions (rows, cols) and displays (T, C, H, W)."""
-    lo, hi = bounds if bounds is not None else (0.0, scene.plate.max_open_fraction)
-    state = _initial_state(scene, torch.as_tensor(targets, dtype=torch.float64),
-                           torch.as_tensor(target_displays, dtype=torch.float64), settings,
-                           (lo, hi))
-    a = lo + (hi - lo) * torch.sigmoid(state["mask_logits"])
-    shown = state["display"]
-    displays = target_displays if shown is None else shown.numpy()
-    return a.numpy(), np.asarray(displays, dtype=np.float64)
-
-
 def _lr_at(settings: OptimizerSettings, iteration: int, snap_from: int | None = None) -> float:
     """The learning rate; the cosine runs once over the continuous iterations and again over
     the snapped ones (from snap_from), so that holes can still move between makeable sizes."""
@@ -336,7 +274,7 @@ def optimize(
     if state is not None:
         state = copy.deepcopy(state)  # a checkpoint stays valid to resume from again
     else:
-        state = _initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
+        state = initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
                                (lo, hi), 0.0 if made is None else made.lo)
     renderer = Renderer(scene, device=device, dtype=dtype)
     mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)

@@ -46,10 +46,10 @@ from aperture_fab.optimize.optimizer import (
     Interrupted,
     MaskDesign,
     fit_display,
-    initial_design,
     optimize,
     training_states,
 )
+from aperture_fab.optimize.start import initial_design
 from aperture_fab.pipeline.checkpoint import (
     CHECKPOINT_NAME,
     input_digests,

@@ -144,7 +144,7 @@ def dry_run(args: argparse.Namespace) -> int:
     """Check every point as the run would (config, then the checks `design` runs first) and
     print the count, the largest memory estimate and the estimated CPU time."""
     from aperture_fab.sweep.estimate import estimate_points
-    from aperture_fab.sweep.run import Resolver
+    from aperture_fab.sweep.preflight import Resolver
     from aperture_fab.sweep.spec import check_points, grid_points, load_spec
 
     start = time.perf_counter()

@@ -25,7 +25,7 @@ from aperture_fab.sweep.spec import Point, SweepSpec, make_point
 from aperture_fab.sweep.worker import plain
 
 if TYPE_CHECKING:
-    from aperture_fab.sweep.run import Resolver
+    from aperture_fab.sweep.preflight import Resolver
 
 __all__ = ["Estimate", "estimate_points", "model_cpu_seconds"]
 
@@ -72,7 +72,7 @@ def estimate_points(spec: SweepSpec, points: Sequence[Point], out: Path,
                     resolve: Resolver | None = None) -> Estimate:
     """Run the checks on every point (a search: on [base] alone) and sum up; `resolve`: the
     sweep's Resolver, when the points were resolved already."""
-    from aperture_fab.sweep.run import Preflight, Resolver
+    from aperture_fab.sweep.preflight import Preflight, Resolver
 
     resolve = resolve or Resolver(spec)
 
