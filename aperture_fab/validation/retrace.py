@@ -89,7 +89,7 @@ direction of B (the cylinder's tests are affine in (x_t, v), so B's corners deci
 pupil's footprint for every v of B, crossing inside the outline and in no other hole's lens.
 For one x_t the rays over B land on a rectangle of the display (their landing is affine in v),
 whose mean light G is bilinear between the breakpoints where the rectangle's edges cross pixel
-edges; tabulated at those breakpoints with its integral J along a row (`_box_table`, from the
+edges; tabulated at those breakpoints with its integral J along a row (`box_table`, from the
 display's summed-area table), it gives the integral over S x B exactly. The rest R of the chord
 is taken at one direction v drawn in B: in closed form where v's rays pass the clear cylinder
 (the display row's summed-area table), and elsewhere (near the wall) by one ray drawn on R with

@@ -81,7 +81,7 @@ def _meets_neighbour(h, y, x0, x1, neighbours, top, top_r, bottom, bottom_r, shi
 
 @inline_jit
 def _grid_cell(x, half, gap, count):
-    """(m, t, length): the interval [p_m, p_m+1] of the box table's breakpoints p (`_box_table`:
+    """(m, t, length): the interval [p_m, p_m+1] of the box table's breakpoints p (`box_table`:
     -half + k and -half + k + gap, k = 0, 1, ...; count of them) that holds x, x - p_m and
     the interval's length; m = -1 before the first breakpoint and count - 1 from the last."""
     y = x + half
@@ -107,7 +107,7 @@ def _box_row(box, grid, row):
 
 @inline_jit
 def _box_light(box, grid, m, wr, col, out, sign, integral):
-    """Adds sign x, from the box table (`_box_table`), to out (C,), at the row w of the way
+    """Adds sign x, from the box table (`box_table`), to out (C,), at the row w of the way
     through row interval m (`_box_row`): with integral, the light of the view box's landing
     rectangle about (row, col) integrated over sub-columns up to col (J); else the rectangle's
     mean light there (G). Exact: J is linear in the row and quadratic in the column between
@@ -173,8 +173,8 @@ def chords_kernel(draw, pixel, hole, vx, vy, top, top_r, bottom, bottom_r, neigh
     """Chord sampling of one chunk of (view pixel, hole) pairs of a view row (module docstring).
 
     draw (P, R n, RANDOM_PER_CHORD): the uniforms; chord_geo: CHORD_FIELDS; sat, lit: the
-    display's summed-area tables (`_summed_area`); box, grid: the view box's table
-    (`_box_table`); hole_inside (K,): whether every ray through a hole's lens crosses the
+    display's summed-area tables (`summed_area`); box, grid: the view box's table
+    (`box_table`); hole_inside (K,): whether every ray through a hole's lens crosses the
     bottom face's plane inside the outline; the rest as `holes_kernel`, whose outputs this writes
     the same way: sums (P, R, C) for what is integrated in closed form or passes through a
     clear cylinder, cast / rays / contrib for the rays Embree decides, counts (P,): chords

@@ -32,12 +32,12 @@ PAIR_BLOCK = 256
 RAY_BLOCK = 4096
 
 
-#: Fields of the shading geometry array (`_Rays.of`).
+#: Fields of the shading geometry array (`retrace_rays.Rays.of`).
 SHADE_FIELDS = ("cx", "cy", "q", "s_bottom", "s_display", "half_width", "half_height", "pixel_x",
                 "pixel_y", "cover_glass", "glass_index_squared", "emission_power")
 
 
-#: Fields of the hole kernel's per-row constants (`_trace_holes`).
+#: Fields of the hole kernel's per-row constants (`retrace_holes.trace_holes`).
 PAIR_FIELDS = ("step_x", "step_y", "s_top", "beta", "scale", "thickness", "grow", "pupil_r2",
                "lens_norm", "z_low", "z_high")
 

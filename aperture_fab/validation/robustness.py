@@ -36,7 +36,7 @@ MAP_SIZE = 7
 SWEEP_POINTS = 7
 #: Focus sweep when the distribution holds the focus fixed: relaxed (0 D) to 2 D.
 FOCUS_SWEEP_DIOPTERS = (0.0, 2.0)
-#: The open display's view is a pupil quadrature (model.render_open); these keep it quick.
+#: The open display's view is a pupil quadrature (open_view.render_open); these keep it quick.
 OPEN_PUPIL_SAMPLES = 64
 OPEN_SUBPIXELS = 2
 #: Offsets (as shares of the eyebox's half size) of the thumbnails.
