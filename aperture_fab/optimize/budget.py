@@ -62,7 +62,7 @@ from typing import Literal
 import torch
 
 from aperture_fab.config.settings import OptimizerSettings
-from aperture_fab.optics import fused_views, kernels, model
+from aperture_fab.optics import fused_views, kernel_pair, kernels, model
 from aperture_fab.optics.device import resolve_device
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.planes import Optics
@@ -101,9 +101,9 @@ LOSS_GRADIENTS = 4
 BUILD_CANDIDATE_BYTES = 40
 #: Torch path: working-dtype values per pair in flight in a chunk (the weights' intermediates).
 CHUNK_VALUES = 30
-#: Kernel path: bytes per pair-cache slot besides the samples (kernels._CACHE_FIELDS float64
+#: Kernel path: bytes per pair-cache slot besides the samples (kernel_pair.CACHE_FIELDS float64
 #: values, the seen flag, the area gradient, the touched index).
-PAIR_CACHE_BYTES = 8 * kernels._CACHE_FIELDS + 17
+PAIR_CACHE_BYTES = 8 * kernel_pair.CACHE_FIELDS + 17
 
 Backend = Literal["kernel", "torch", "triton"]
 
