@@ -281,3 +281,16 @@ def test_bench_eyes_quick_runs_and_writes_its_figures(
         assert p["p10"] <= p["p50"] <= p["p90"]
     assert set(result["tracked"]) == {"as_built", "regular_pinholes"}
     assert "untracked p10 margin" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_bench_gap_scale_quick(tmp_path: Path) -> None:
+    """A gap error's view, taken at its picture's size, is the nominal view to well above the
+    PSNR scale of a made part (31.6 dB measured in the quick run), and its figures are written."""
+    out = tmp_path / "gap.json"
+    results = _load("bench_gap_scale").main(["--quick", "--json", str(out)])
+    assert json.loads(out.read_text()) == results
+    for row in results:
+        assert _positive(row["nominal_psnr_db"])
+        for e in row["errors"]:
+            assert e["scaled_vs_nominal_view_db"] > 25
