@@ -289,29 +289,34 @@ def test_out_of_memory_is_a_refusal_not_a_traceback(folder: Path, monkeypatch: p
     assert "`export` ran out of memory" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(("signum", "how", "code"), [
+    (signal.SIGTERM, "SIGTERM", EXIT_TERMINATED),
+    (signal.SIGINT, "Ctrl-C", EXIT_INTERRUPTED),
+], ids=["SIGTERM", "SIGINT"])
 @pytest.mark.parametrize("then", ["fails", "finishes"])
-def test_a_sigterm_dropped_inside_a_library_still_stops_as_sigterm(
+def test_a_signal_dropped_inside_a_library_still_stops_the_command(
         folder: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
-        then: str) -> None:
-    """A SIGTERM whose Terminated lands in a ctypes callback (Numba's compiler: CI saw it) is
-    printed and dropped there; the command then fails for another reason or finishes, and
-    exits 143 all the same."""
+        then: str, signum: signal.Signals, how: str, code: int) -> None:
+    """A SIGTERM or Ctrl-C whose exception lands in a ctypes callback (Numba's compiler: CI saw
+    it) is printed and dropped there; the command then fails for another reason or finishes,
+    and exits as stopped by that signal all the same, the handlers restored."""
     import aperture_fab.pipeline.export_job as export_job
 
     write_part = export_job.write_part
 
     def signalled(*args: object, **kwargs: object) -> object:
         with contextlib.suppress(KeyboardInterrupt):  # as the callback's caller drops it
-            signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signum)
         if then == "fails":
             raise ValueError("the compiler's state after the dropped exception")
         return write_part(*args, **kwargs)
 
     monkeypatch.setattr(export_job, "write_part", signalled)
-    assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == EXIT_TERMINATED
+    assert run(["export", "{d}/design.npz", "--out", "{d}/x"], folder) == code
     err = capsys.readouterr().err
-    assert "(SIGTERM) during `export`" in err and "Traceback" not in err
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored
+    assert f"({how}) during `export`" in err and "Traceback" not in err
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 @pytest.mark.slow

@@ -14,9 +14,8 @@ from aperture_fab.cli.parser import build_parser
 from aperture_fab.cli.status import (
     EXIT_CANNOT_WRITE,
     EXIT_FAILED,
-    EXIT_TERMINATED,
     EXIT_USAGE,
-    Sigterm,
+    Stop,
     exit_code,
     how_stopped,
     missing_package,
@@ -25,6 +24,9 @@ from aperture_fab.cli.status import (
 )
 
 __all__ = ["main"]
+
+#: The signals that stop a command the way Ctrl-C does (a checkpoint, whole files).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -43,18 +45,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                     terminal=sys.stderr.isatty())
     args.output = output
     main_thread = threading.current_thread() is threading.main_thread()
-    sigterm = Sigterm()
-    before = signal.signal(signal.SIGTERM, sigterm) if main_thread else None
+    stop = Stop()
+    before = {signum: signal.signal(signum, stop) for signum in STOP_SIGNALS} if main_thread \
+        else {}
     try:
         code = _run(args, output)
     finally:
-        if main_thread:  # None: the handler was not set from Python, i.e. the default
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
-    if sigterm.received and code != EXIT_TERMINATED:  # its Terminated was dropped on the way
-        output.interrupted(f"(SIGTERM) during `{args.command}`, which went on past it inside a "
+        for signum, handler in before.items():  # None: not set from Python, i.e. the default
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+    how, stopped = stop.how
+    if stop.signum is not None and code != stopped:  # its exception was dropped on the way
+        output.interrupted(f"({how}) during `{args.command}`, which went on past it inside a "
                            "compiled library; every file already written is whole. Run the "
                            "command again to finish it.")
-        return EXIT_TERMINATED
+        return stopped
     return code
 
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import errno
 import re
+import signal
 from typing import Any
 
 from aperture_fab.errors import Refused, Unreachable
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_CANNOT_WRITE", "EXIT_CODES_HELP", "EXIT_FAILED",
            "EXIT_INTERRUPTED", "EXIT_NO_CLUSTER", "EXIT_OK", "EXIT_REPORT_FAIL", "EXIT_REPORT_WARN",
-           "EXIT_TERMINATED", "EXIT_USAGE", "Sigterm", "exit_code", "how_stopped",
+           "EXIT_TERMINATED", "EXIT_USAGE", "Stop", "exit_code", "how_stopped",
            "missing_package", "missing_package_message", "os_error_message"]
 
 
@@ -103,17 +104,26 @@ class Terminated(KeyboardInterrupt):
     design saves its checkpoint, every file written so far is whole."""
 
 
-class Sigterm:
-    """The SIGTERM handler: raises Terminated, and remembers that it did. A raise that lands
-    inside a ctypes callback (Numba's compiler, LLVM) is printed and dropped there, and the
-    command goes on or fails for another reason; main still exits as stopped by SIGTERM."""
+class Stop:
+    """The SIGINT and SIGTERM handler: raises KeyboardInterrupt (Terminated for SIGTERM), as
+    Python's own SIGINT handler does, and remembers the first signal. A raise that lands inside
+    a ctypes callback (Numba's compiler, LLVM) is printed and dropped there, and the command
+    goes on or fails for another reason; main still exits as stopped by that signal."""
 
     def __init__(self) -> None:
-        self.received = False
+        self.signum: int | None = None
 
     def __call__(self, signum: int, frame: Any) -> None:
-        self.received = True
-        raise Terminated()
+        if self.signum is None:
+            self.signum = signum
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    @property
+    def how(self) -> tuple[str, int]:
+        """The stop's name and exit status, as `how_stopped` gives them."""
+        if self.signum == signal.SIGTERM:
+            return "SIGTERM", EXIT_TERMINATED
+        return "Ctrl-C", EXIT_INTERRUPTED
 
 
 def how_stopped(err: BaseException) -> tuple[str, int]:
