@@ -28,12 +28,15 @@ alike and the ratios between cases stay fair):
   warm-up). A case whose estimated memory (`aperture_fab.optimize.budget`) is over the budget is
   refused before any work and reported as such (the refusal message in the table).
 
-Every timed run is one `optimize` call with a checkpoint callback after every iteration that
-stamps the time; the cost of making a checkpoint (estimated by copying the last one) is taken
-out. Per iteration, the loss's forward and backward are timed separately: `optimize`'s
-`_design_loss` is wrapped (in the child only) to stamp the forward, and identity autograd nodes
-on its output and on its plate and display inputs stamp the start and the end of the backward;
-the renderer kernels (`aperture_fab.optics.kernels.view_forward` / `view_backward`) are timed on
+Every timed run is one `optimize` call without checkpoints; each iteration is timed from the
+start of its loss to the start of the next one (the GPU synchronized at each stamp), so an
+iteration case runs one iteration more than it times. (Stamps in a checkpoint callback, less
+an estimate of a checkpoint's cost, read 0 s per iteration for the nominal case on an H200,
+the estimate as long as an iteration, and called its goal met.) Per iteration, the loss's
+forward and backward are timed separately: `optimize`'s `_design_loss` is wrapped (in the
+child only) to stamp the forward, and identity autograd nodes on its output and on its plate
+and display inputs stamp the start and the end of the backward; the renderer kernels
+(`aperture_fab.optics.kernels.view_forward` / `view_backward`) are timed on
 their own too. The rest of an iteration (Adam step, drawing eye states) is the remainder. The
 backend of a case is forced by handing `optimize` a Renderer with that backend (patched in the
 child). s/iter: the median over the repeats of the iterations after the warm-up ones (the first
@@ -64,7 +67,6 @@ quick design is extended to the nominal iteration count at its per-iteration rat
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import functools
 import json
@@ -131,8 +133,6 @@ SINGLE_CASE = "nominal"
 STATES_CASE = "near-eye"
 #: View of the near-eye cases under --quick (a smoke test, not figures).
 QUICK_VIEW = [32, 32]
-#: Copies of the last checkpoint timed to estimate what making one costs (median).
-SNAPSHOT_REPEATS = 5
 #: Copy-bandwidth arrays (MiB each) for the STREAM-like copy; smaller under --quick.
 COPY_MIB, QUICK_COPY_MIB = 512, 64
 
@@ -215,8 +215,8 @@ DEFAULT_CASES = ("seed-28", "seed-100", STATES_CASE, "near-eye-1", SINGLE_CASE, 
 
 
 def case_config(case: Case, device: str, iterations: int, quick: bool = False) -> Config:
-    """The case's resolved config: every iteration runs (no plateau stop) and a checkpoint
-    follows every iteration (the timing hook). quick: the near-eye cases at QUICK_VIEW."""
+    """The case's resolved config: every iteration runs (no plateau stop). quick: the near-eye
+    cases at QUICK_VIEW."""
     small = ({"eye.view_pixels": QUICK_VIEW}
              if quick and case.preset.startswith("near-eye") and case.name != "large" else {})
     return resolve(case.preset, None, {
@@ -225,7 +225,6 @@ def case_config(case: Case, device: str, iterations: int, quick: bool = False) -
         "optimizer.device": device,
         "optimizer.iterations": iterations,
         "optimizer.plateau_patience": 0,
-        "optimizer.checkpoint_every": 1,
     })
 
 
@@ -404,10 +403,12 @@ class _Mark(torch.autograd.Function):
 
 
 class _Profile:
-    """Per iteration: forward seconds, backward seconds of the loss, and the kernel's."""
+    """Per iteration: when its loss started, forward seconds, backward seconds of the loss,
+    and the kernel's."""
 
     def __init__(self, device: torch.device) -> None:
         self.device = device
+        self.loss_starts: list[float] = []
         self.forward: list[float] = []
         self.starts: list[list[float]] = []
         self.ends: list[list[float]] = []
@@ -425,6 +426,7 @@ class _Profile:
             self.kernel_backward.append(0.0)
             _sync(self.device)
             start = time.perf_counter()
+            self.loss_starts.append(start)
             if a.requires_grad:
                 a = _Mark.apply(a, end_list, self.device)
             if displays.requires_grad:
@@ -452,36 +454,10 @@ class _Profile:
                 for start, end in zip(self.starts, self.ends, strict=True)]
 
 
-class _Stopwatch:
-    """Checkpoint callback: stamps the time after every iteration. After the last one it also
-    times copies of the checkpoint (the median of SNAPSHOT_REPEATS), an estimate of what
-    optimize spent making each checkpoint, which the figures leave out (a few ms for near-eye
-    on a CPU, tens of us for seed)."""
-
-    def __init__(self, last_iteration: int, device: torch.device) -> None:
-        self.last_iteration = last_iteration
-        self.device = device
-        self.stamps: list[float] = []
-        self.snapshot_s = 0.0
-
-    def __call__(self, state: dict[str, Any]) -> None:
-        self.stamps.append(time.perf_counter())
-        if state["iteration"] == self.last_iteration:  # no interval left to disturb
-            copies = []
-            for _ in range(SNAPSHOT_REPEATS):
-                start = time.perf_counter()
-                copy.deepcopy(state)
-                _sync(self.device)
-                copies.append(time.perf_counter() - start)
-            self.snapshot_s = statistics.median(copies)
-
-
 def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray, device: torch.device,
-                    backend: str) -> tuple[float, list[float], float, _Profile]:
-    """Seconds of one optimize call, seconds of each of its iterations 2, 3, ..., the
-    checkpoint cost taken out of both, and the per-iteration profile."""
-    iterations = config.optimizer.iterations
-    watch = _Stopwatch(iterations, device)
+                    backend: str) -> tuple[float, list[float], _Profile]:
+    """Seconds of one optimize call, seconds of each of its iterations but the last (from its
+    loss's start to the next one's), and the per-iteration profile."""
     profile = _Profile(device)
     renderer = functools.partial(Renderer, backend=backend)
     fused: Any = kernels
@@ -495,12 +471,10 @@ def _timed_optimize(config: Config, views: np.ndarray, shown: np.ndarray, device
             mock.patch.object(fused, "view_backward",
                               profile.kernel(fused.view_backward, "kernel_backward")):
         start = time.perf_counter()
-        optimize(config.scene, views, shown, config.optimizer, progress=False,
-                 on_checkpoint=watch)
+        optimize(config.scene, views, shown, config.optimizer, progress=False)
         _sync(device)
-        total = time.perf_counter() - start - iterations * watch.snapshot_s
-    intervals = (np.diff(watch.stamps) - watch.snapshot_s).tolist()
-    return total, intervals, watch.snapshot_s, profile
+        total = time.perf_counter() - start
+    return total, np.diff(profile.loss_starts).tolist(), profile
 
 
 def _backend_of(case: Case, device: torch.device) -> str:
@@ -513,7 +487,9 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
     backend = _backend_of(case, device)
     iterations = case.quick_iterations if quick else case.iterations
     warmup = case.quick_warmup if quick else case.warmup
-    config = case_config(case, str(device), warmup + iterations, quick)
+    # An iteration case runs one iteration more: the last timed one ends when its next starts.
+    extra = 1 if case.metric == "iteration" else 0
+    config = case_config(case, str(device), warmup + iterations + extra, quick)
     scene, settings = config.scene, config.optimizer
     dtype = torch.float64 if settings.precision == "float64" else torch.float32
     views, shown = prepare_targets([EXAMPLES[case.target]()], config.scene.eye.view_pixels,
@@ -561,8 +537,7 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
         rss_before = _peak_rss_bytes()
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    total, intervals, snapshot_s, profile = _timed_optimize(config, views, shown, device,
-                                                            backend)
+    total, intervals, profile = _timed_optimize(config, views, shown, device, backend)
     peak_rss = _peak_rss_bytes() - rss_before
     cuda_peak = torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None
     start = time.perf_counter()  # warm setup, after a run
@@ -572,20 +547,19 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
         table_pairs = sum(renderer.pair_count(p) for p in range(len(scene.eye.positions_mm)))
     _sync(device)
     setup_s = time.perf_counter() - start
-    # Intervals start at iteration 2, the profile at iteration 1: both skip the warm-up ones
-    # (a design: the first iteration).
+    # Skip the warm-up iterations (a design: the first iteration).
     skip = max(warmup, 1)
-    steps = intervals[skip - 1:]
-    forward, backward = profile.forward[skip:], profile.backward()[skip:]
+    steps = intervals[skip:]
+    timed = slice(skip, skip + len(steps))
+    forward, backward = profile.forward[timed], profile.backward()[timed]
     raw.update({
         "design_s": total,
         "steps": steps,
         "other": [s - f - b for s, f, b in zip(steps, forward, backward, strict=True)],
         "forward": forward,
         "backward": backward,
-        "kernel_forward": profile.kernel_forward[skip:],
-        "kernel_backward": profile.kernel_backward[skip:],
-        "snapshot_s": snapshot_s,
+        "kernel_forward": profile.kernel_forward[timed],
+        "kernel_backward": profile.kernel_backward[timed],
         "setup_s": setup_s,
         "peak_rss_bytes": peak_rss,
         "cuda_peak_bytes": cuda_peak,
@@ -667,7 +641,6 @@ def summarize(case: Case, raws: Sequence[Mapping[str, Any]], quick: bool) -> dic
         "other_s": other_s,
         "kernel_forward_s": kernel_fwd if first["backend"] in FUSED else None,
         "kernel_backward_s": kernel_bwd if first["backend"] in FUSED else None,
-        "snapshot_s": statistics.median(r["snapshot_s"] for r in raws),
         "measured_s": measured_s,
         "ratio_to_goal": None if case.goal_s is None else measured_s / case.goal_s,
         "speedup_vs_reference": (None if case.reference_s is None

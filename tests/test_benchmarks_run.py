@@ -144,7 +144,8 @@ def test_bench_optimize_quick(bench_optimize: ModuleType, tmp_path: Path,
             assert case["ratio_to_goal"] == pytest.approx(case["measured_s"] / case["goal_s"])
         assert case["cuda_peak_mib"] is None
         assert all(_positive(s) for s in case["iteration_s_runs"])
-        assert case["forward_s"] + case["backward_s"] < 2 * case["iteration_s"]
+        # An iteration spans its loss's forward and backward (the rest is never negative).
+        assert case["other_s"] >= 0, (name, case["other_s"])
         if case["backend"] == "kernel":
             for key in ("kernel_forward_s", "kernel_backward_s", "read_gb", "achieved_gbs"):
                 assert _positive(case[key]), (name, key, case[key])
