@@ -10,14 +10,17 @@ process, then everything judged the one way the report judges the made part
 their sizes, a fresh draw of its radius and position errors per made copy), diffraction at the
 holes and the veil the solid leaks; PSNR after gain, percentiles pooled over --copies made
 copies x --states eye states of the preset's distribution (`evaluation_states`); light as the
-efficiency for a white display.
+efficiency for a white display and as the light at the eye (the mean view of the content shown,
+a share of the panel's white; times the [photometry] panel's luminance, cd/m2 at the eye, which
+the goal wants photopic: at least 5 cd/m2).
 
 The regular family: every lattice step up to 3 mm x 6 made hole sizes, first with elemental
-images (fast, every array), then the rivals at the part's light (per pitch, the two smallest
-holes at least as bright; the --rivals best of them) again with their display fitted like the
-part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from the elemental
-images): `made_part_block`, as the report does it with fewer rivals and iterations. The margin is
-the part's p10 less the best rival's p10 at equal or more light.
+images (fast, every array), then the rivals at the part's light at the eye (per pitch, the two
+smallest holes at least as bright; the --rivals best of them) again with their display
+fitted like the part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from
+the elemental images): `made_part_block`, as the report does it with fewer rivals and
+iterations. The margin is
+the part's p10 less the best rival's p10 at equal or more light at the eye.
 
 Also: the tolerance yield of the report (`validation.validate.tolerance_analysis`: process and
 assembly tolerances, each of --tolerance-samples draws (default 16, the report's) judged by its
@@ -45,6 +48,7 @@ import torch
 from aperture_fab.config.config import resolve
 from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.metrics import psnr_db
+from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2, photometry_settings
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import made_part_block
@@ -81,6 +85,7 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if args.iterations is not None:
         overrides["optimizer.iterations"] = args.iterations
     config = resolve(args.preset, None, overrides)
+    panel_cd_m2 = photometry_settings(config.extra).panel_luminance_cd_m2
     fabrication = fabrication_settings(config.extra, {"process": args.process})
     scene, process = config.scene, fabrication.process
     start = time.perf_counter()
@@ -106,14 +111,17 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     row: dict[str, Any] = {
         "target": name, "process": process.name, "holes": result.part.layout.count,
         "p10_db": part["p10_db"][0], "p50_db": part["p50_db"][0], "p90_db": part["p90_db"][0],
-        "efficiency": part["efficiency"], "yield": tolerance["yield"], "design_s": seconds,
+        "efficiency": part["efficiency"], "eye_level": part["eye_level"],
+        "eye_cd_m2": part["eye_level"] * panel_cd_m2, "panel_cd_m2": panel_cd_m2,
+        "yield": tolerance["yield"], "design_s": seconds,
         "optimizer_db": optimizer_db, "judged_db": part["mean_mse_psnr_db"][0],
         "made_part": block,
     }
     best = block["regular"]["best"]
     if best is not None:
         row.update(best_pitch_mm=best["pitch_mm"], best_diameter_mm=best["diameter_mm"],
-                   best_efficiency=best["efficiency"], best_p10_db=best["p10_db"][0],
+                   best_efficiency=best["efficiency"], best_eye_level=best["eye_level"],
+                   best_p10_db=best["p10_db"][0],
                    margin_db=block["margin_db"][0])
     return row
 
@@ -165,10 +173,13 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         margin = row.get("margin_db")
         print(f"{name:10s} {row['process']}: part p10/p50/p90 {row['p10_db']:.2f} / "
               f"{row['p50_db']:.2f} / {row['p90_db']:.2f} dB at {row['efficiency']:.2%} light, "
-              f"{row['holes']} holes; best regular at >= that light "
+              f"{row['eye_level']:.3%} of the panel's white at the eye ({row['eye_cd_m2']:.2f} "
+              f"cd/m2 from {row['panel_cd_m2']:g}; photopic >= {MESOPIC_UPPER_CD_M2:g}), "
+              f"{row['holes']} holes; best regular at >= that light at the eye "
               + ("none" if margin is None else
                  f"{row['best_p10_db']:.2f} dB ({row['best_pitch_mm']:g} mm, "
-                 f"{row['best_diameter_mm'] * 1000:.0f} um, {row['best_efficiency']:.2%})")
+                 f"{row['best_diameter_mm'] * 1000:.0f} um, {row['best_efficiency']:.2%}, "
+                 f"{row['best_eye_level']:.3%} at the eye)")
               + (f"; margin {margin:+.2f} dB (goal +{GOAL_MARGIN_DB:g})" if margin is not None
                  else "")
               + f"; yield {row['yield']:.0%} (goal {GOAL_YIELD:.0%}); optimizer "

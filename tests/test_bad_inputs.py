@@ -959,6 +959,7 @@ IN_RANGE: dict[tuple[str, Any], str] = {
     ("optimizer.momentum", 0.0): "plain SGD",
     ("optimizer.efficiency_weight", 0.0): "light level ignored",
     ("optimizer.min_efficiency", 0.0): "no light floor",
+    ("optimizer.min_eye_level", 0.0): "no floor on the light at the eye",
     ("optimizer.plateau_patience", 0): "never stop early",
     ("optimizer.plateau_tolerance", 0.0): "any improvement counts",
     ("optimizer.seed", 0): "seed 0",

@@ -1,5 +1,6 @@
-"""The brightness floor (optimizer.min_efficiency): the optimizer keeps the plate's light
-efficiency up to the floor, and gives up image quality for it."""
+"""The brightness floors: the optimizer keeps the plate's light efficiency
+(optimizer.min_efficiency) or the light at the eye with its content (optimizer.min_eye_level)
+up to the floor, and gives up image quality for it; a floor no plate reaches is refused."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from conftest import tiny_config
 
 from aperture_fab.config import resolve
 from aperture_fab.config.presets import LIGHT_FLOOR
+from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.pipeline.design_job import design
@@ -38,7 +41,39 @@ def test_the_floor_holds_and_costs_quality() -> None:
     assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
 
 
+def eye_level(config, result) -> float:  # type: ignore[no-untyped-def]
+    """The light at the eye: the mean view of the design's content (nominal eye)."""
+    renderer = Renderer(config.scene, dtype=torch.float64)
+    with torch.no_grad():
+        return float(renderer.render(torch.as_tensor(result.design.open_fraction),
+                                     torch.as_tensor(result.design.displays[0]), 0).mean())
+
+
+@pytest.mark.slow
+def test_the_floor_on_the_light_at_the_eye_holds_and_costs_quality() -> None:
+    free = tiny_config(**{"optimizer.iterations": 60})
+    plain = design([digit("3")], free)
+    floor = 1.5 * eye_level(free, plain)  # binding: the free design is a third dimmer
+    floored = tiny_config(**{"optimizer.iterations": 60, "optimizer.min_eye_level": floor})
+    bright = design([digit("3")], floored)
+    assert eye_level(floored, bright) >= floor * (1 - FLOOR_SLACK)
+    assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
+
+
+def test_a_floor_on_the_light_at_the_eye_no_plate_reaches_is_refused_before_the_work() -> None:
+    config = tiny_config(**{"optimizer.min_eye_level": 0.6, "plate.thickness_mm": 0.005})
+    with pytest.raises(ValueError, match=r"optimizer.min_eye_level = 0.6 \(60.00% of the panel's "
+                       r"white at the eye\) cannot be met: the brightest plate with process "
+                       r"'photomask'.* passes \d+\.\d+%. Lower the floor to"):
+        design([digit("3")], config,
+               fabrication=FabricationSettings(resolve_process("photomask")))
+
+
 @pytest.mark.parametrize(("overrides", "fragment"), [
+    ({"optimizer.min_eye_level": 1.0}, "optimizer.min_eye_level = 1.0 is out of range"),
+    ({"optimizer.min_eye_level": -0.1}, "optimizer.min_eye_level = -0.1 is out of range"),
+    ({"optimizer.min_eye_level": 0.01, "optimizer.tracking": "tracked"},
+     "optimizer.min_eye_level holds an untracked design's brightness"),
     ({"optimizer.min_efficiency": 1.0}, "optimizer.min_efficiency = 1.0 is out of range"),
     ({"optimizer.min_efficiency": -0.1}, "optimizer.min_efficiency = -0.1 is out of range"),
     ({"optimizer.min_efficiency": 0.01, "optimizer.tracking": "tracked"}, "tracked design"),

@@ -53,10 +53,12 @@ fronts = st.integers(1, 12).flatmap(lambda n: st.tuples(
     st.floats(1e-4, 0.6)))
 
 
-def make_front(eff: list[float], p10: list[float], pitch: list[float]) -> RegularFront:
+def make_front(light: list[float], p10: list[float], pitch: list[float]) -> RegularFront:
+    """A front whose light at the eye is `light` (and whose white efficiency is not: arrays
+    are compared at the eye)."""
     p = np.array(p10)[:, None]
-    return RegularFront(np.array(pitch), np.array(eff) * 0.5 + 0.01, np.array(eff), p, p + 1,
-                        p + 2)
+    return RegularFront(np.array(pitch), np.array(light) * 0.5 + 0.01, np.array(light)[::-1],
+                        np.array(light), p, p + 1, p + 2)
 
 
 @settings(max_examples=60, deadline=None)
@@ -117,7 +119,7 @@ def test_without_diffraction_the_smallest_hole_is_best(one_pitch):
     _, _, targets, arrays, renderer = one_pitch
     front = regular_front(renderer, targets, arrays, MadeOptics(), renderer.nominal_states())
     assert np.all(np.diff(front.p10[:, 0]) < 0)
-    for k, light in enumerate(front.efficiency):
+    for k, light in enumerate(front.eye_level):
         assert front.best_at(float(light)) == k
     # and the light of a thin regular array is about its open area, (pi d^2 / 4) / pitch^2,
     # less at the view's edge, where part of the pupil's footprint leaves the 20 mm plate
@@ -135,6 +137,25 @@ def test_with_diffraction_the_best_hole_is_the_diffraction_limited_one(one_pitch
     assert best is not None and 0 < best < len(arrays) - 1  # inside the ladder
     optimum = math.sqrt(2.44 * GREEN_MM * scene.pinhole_height_mm)
     assert optimum / 1.5 < front.diameter_mm[best] < optimum * 1.5
+
+
+def test_light_at_the_eye_is_the_white_efficiency_of_a_white_display_and_follows_the_content(
+        one_pitch):
+    """The light at the eye (what plates are compared by) is the mean view of the content
+    shown: for a white display, without veil or diffraction (whose blur loses a little light
+    off the view's edges), it is the plate's white efficiency, and it halves with the content
+    while the PSNR after gain does not move."""
+    scene, process, targets, arrays, renderer = one_pitch
+    optics = dataclasses.replace(made_optics(scene, process), radius_sigma_mm=0.0,
+                                 position_sigma_mm=0.0, solid_transmission=0.0, diffraction=None)
+    width, height = scene.display.pixels
+    white = np.ones((1, targets.shape[1], height, width))
+    plate = arrays[len(arrays) // 2].array.open_fraction
+    full = judge_made(renderer, targets, plate, white, optics, renderer.nominal_states())
+    half = judge_made(renderer, targets, plate, white / 2, optics, renderer.nominal_states())
+    assert full.eye_level == pytest.approx(full.efficiency, rel=1e-9)
+    assert half.eye_level == pytest.approx(full.eye_level / 2, rel=1e-9)
+    np.testing.assert_allclose(half.psnr_db, full.psnr_db, atol=1e-6)
 
 
 # -- the model the optimizer sees is the part that is written -----------------------------------
@@ -169,12 +190,12 @@ def test_mean_mse_psnr_is_the_psnr_of_the_mean_error(psnr: list[float]) -> None:
     """The optimizer's figure (PSNR of the mean squared error) from per-state PSNRs: equal to
     them when they are equal, never above their mean (Jensen), never below their minimum."""
     values = np.array(psnr)
-    quality = MadeQuality(values.reshape(1, 1, -1), 0.01)
+    quality = MadeQuality(values.reshape(1, 1, -1), 0.01, 0.003)
     mse = np.mean(10 ** (-values / 10))
     figure = float(quality.mean_mse_psnr()[0])
     assert figure == pytest.approx(-10 * math.log10(mse), abs=1e-9)
     assert values.min() - 1e-9 <= figure <= values.mean() + 1e-9
-    flat = MadeQuality(np.full((1, 2, 3), values[0]), 0.01)
+    flat = MadeQuality(np.full((1, 2, 3), values[0]), 0.01, 0.003)
     assert float(flat.mean_mse_psnr()[0]) == pytest.approx(values[0], abs=1e-9)
 
 
@@ -193,10 +214,11 @@ def test_a_floor_no_plate_reaches_is_refused_before_the_work():
 
 def block(margin: float | None) -> dict:
     best = None if margin is None else {
-        "pitch_mm": 1.0, "diameter_mm": 0.1, "efficiency": 0.03, "p10_db": [20.0 - margin],
-        "p50_db": [21.0], "p90_db": [22.0]}
+        "pitch_mm": 1.0, "diameter_mm": 0.1, "efficiency": 0.03, "eye_level": 0.009,
+        "p10_db": [20.0 - margin], "p50_db": [21.0], "p90_db": [22.0]}
     return {"copies": 4, "states": 32, "neglected": [],
-            "part": {"efficiency": 0.025, "p10_db": [20.0], "p50_db": [22.0], "p90_db": [24.0]},
+            "part": {"efficiency": 0.025, "eye_level": 0.004, "p10_db": [20.0], "p50_db": [22.0],
+                     "p90_db": [24.0]},
             "regular": {"family": {}, "fitted": {}, "best": best},
             "margin_db": None if margin is None else [margin]}
 
@@ -206,4 +228,4 @@ def block(margin: float | None) -> dict:
 def test_made_verdict_levels(margin, level):
     verdict = made_verdict(block(margin))
     assert verdict.level == level
-    assert "20.0 dB at 2.5 % light" in verdict.text
+    assert "20.0 dB at 2.5 % light (0.4 % of the panel's white at the eye" in verdict.text

@@ -40,11 +40,12 @@ DATE = "2025-01-02T03:04:05Z"
 
 def block(efficiency: float = 0.0016, level: float = 1.0, *, panel: float = 500.0,
           pupil: float = 4.0, floor: float = 0.0, weight: float = 0.0, od: float = 6.0,
-          open_share: float = 0.2) -> dict[str, Any]:
+          open_share: float = 0.2, eye_floor: float = 0.0) -> dict[str, Any]:
     return photometry_block(
         efficiency=efficiency, level=level, settings=PhotometrySettings(panel),
         assumed_pupil_mm=pupil, fov_deg=FOV, min_efficiency=floor, efficiency_weight=weight,
-        optical_density=od, optical_density_note="metal: opaque", open_share=open_share)
+        optical_density=od, optical_density_note="metal: opaque", open_share=open_share,
+        min_eye_level=eye_floor)
 
 
 def test_the_issues_example_is_mesopic_with_a_wider_pupil() -> None:
@@ -60,9 +61,13 @@ def test_the_issues_example_is_mesopic_with_a_wider_pupil() -> None:
     for words in ("0.16 %", "0.8 cd/m2", "mesopic", "Watson and Yellott 2012",
                   "Nothing in the design asked for light", "optimizer.min_efficiency"):
         assert words in verdict.text, words
-    # the fixes, the floor first (nothing asked for light), none in the reason's text
-    assert verdict.fixes[0].startswith("Set optimizer.min_efficiency")
-    assert "about 1.0 % keeps this panel and content photopic" in verdict.fixes[0]
+    # the fixes, the floors first (nothing asked for light), none in the reason's text: the
+    # light at the eye (which counts the content), then the plate's efficiency
+    assert verdict.fixes[0].startswith("Set the floor on the light at the eye "
+                                       "(optimizer.min_eye_level) to 0.01 (5 cd/m2 from this "
+                                       "panel)")
+    assert verdict.fixes[1].startswith("Set optimizer.min_efficiency")
+    assert "about 1.0 % keeps this panel and content photopic" in verdict.fixes[1]
     assert any("panel_luminance_cd_m2" in f for f in verdict.fixes)
     assert any("eye.pupil_mm" in f for f in verdict.fixes)
     assert "Fix" not in verdict.text
@@ -72,11 +77,33 @@ def test_a_light_floor_already_set_is_raised_not_set_again() -> None:
     verdict = light_verdict(block(floor=0.001))  # met, still mesopic
     assert verdict.level == "warn" and verdict.fixes
     assert not any(f.startswith("Set optimizer.min_efficiency") for f in verdict.fixes)
-    assert verdict.fixes[0].startswith("Raise the brightness floor (optimizer.min_efficiency, "
+    assert verdict.fixes[1].startswith("Raise the brightness floor (optimizer.min_efficiency, "
                                        "now 0.10 %")
     missed = light_verdict(block(0.016, floor=0.02, panel=10_000.0, pupil=2.8))
     assert missed.level == "fail"
     assert [f.split(" ")[0] for f in missed.fixes] == ["Design", "Lower"]
+
+
+@pytest.mark.parametrize(("level", "verdict_level"), [(0.5, "pass"), (0.38, "warn"),
+                                                      (0.1, "fail")])
+def test_the_floor_on_the_light_at_the_eye_counts_the_content(level: float,
+                                                              verdict_level: str) -> None:
+    """A 5 % plate on a 10,000 cd/m2 panel: the light at the eye is 5 % of the content's mean
+    level, against a floor of 2 % of the panel's white (missed by more than FLOOR_FAIL_SHARE
+    of it: fail)."""
+    found = block(0.05, level, panel=10_000.0, pupil=2.8, eye_floor=0.02)
+    assert found["photopic_eye_level"] == pytest.approx(5 / 10_000)
+    assert found["meets_min_eye_level"] is (0.05 * level >= 0.02)
+    verdict = light_verdict(found)
+    assert verdict.level == verdict_level
+    if verdict_level == "pass":
+        assert "It meets the floor on the light at the eye optimizer.min_eye_level = 2.0 %" \
+            in verdict.text
+    else:
+        assert "It misses the floor on the light at the eye optimizer.min_eye_level = 2.0 %" \
+            in verdict.text
+        assert verdict.fixes[0].startswith("Design again with more iterations")
+        assert not any("Lower the brightness floor" in f for f in verdict.fixes)
 
 
 def test_a_bright_view_with_the_right_pupil_passes() -> None:

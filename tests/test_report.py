@@ -135,11 +135,13 @@ def complete_inputs(targets: tuple[str, ...] = TARGETS) -> dict[str, Any]:
 def made_block(count: int = len(TARGETS)) -> dict[str, Any]:
     """A "made_part" block as made_part_block gives it: the part 5 dB above its best rival."""
     family = {"pitch_mm": [0.5, 1.0, 1.0], "diameter_mm": [0.06, 0.06, 0.1],
-              "efficiency": [0.011, 0.003, 0.008], "p10_db": [16.0, 17.0, 16.5],
+              "efficiency": [0.011, 0.003, 0.008], "eye_level": [0.004, 0.001, 0.003],
+              "p10_db": [16.0, 17.0, 16.5],
               "p50_db": [17.0, 18.0, 17.5]}
-    figures = {"efficiency": 0.01, "p10_db": [21.0] * count, "p50_db": [23.0] * count,
-               "p90_db": [25.0] * count}
-    best = {"pitch_mm": 0.5, "diameter_mm": 0.06, "efficiency": 0.011, "p10_db": [16.0] * count,
+    figures = {"efficiency": 0.01, "eye_level": 0.002, "p10_db": [21.0] * count,
+               "p50_db": [23.0] * count, "p90_db": [25.0] * count}
+    best = {"pitch_mm": 0.5, "diameter_mm": 0.06, "efficiency": 0.011, "eye_level": 0.004,
+            "p10_db": [16.0] * count,
             "p50_db": [17.0] * count, "p90_db": [18.0] * count}
     return {"copies": 4, "states": 32, "neglected": ["wall scatter"], "part": figures,
             "regular": {"family": family, "fitted": family, "best": best},
@@ -163,7 +165,7 @@ def png_size(data: bytes) -> tuple[int, int]:
 
 
 def test_build_report_structure(report: dict[str, Any]) -> None:
-    assert report["schema_version"] == SCHEMA_VERSION == 2
+    assert report["schema_version"] == SCHEMA_VERSION == 3
     assert list(report)[:5] == ["schema_version", "eye_distribution", "verdicts", "photometry",
                                 "metrics"]
     eyes = report["eye_distribution"]
@@ -203,7 +205,7 @@ def test_nan_becomes_null_and_mean_is_null() -> None:
 def test_json_round_trip(report: dict[str, Any]) -> None:
     text = report_json(report)
     assert json.loads(text) == report
-    assert text.startswith('{\n  "schema_version": 2,\n  "eye_distribution": {')
+    assert text.startswith('{\n  "schema_version": 3,\n  "eye_distribution": {')
 
 
 @settings(max_examples=30, deadline=None)
@@ -750,7 +752,7 @@ def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
                                    "Over the eye distribution"]
     assert parser.image_ids[:5] == ["fig-made_front", "fig-eye_map", "fig-eye_pupil",
                                     "fig-eye_focus", "fig-eye_thumbnails"]
-    assert "Margin at equal or more light: <b>+5.0 / +5.0 dB</b>" in page
+    assert "Margin over it (at equal or more light at the eye): <b>+5.0 / +5.0 dB</b>" in page
 
 
 def test_html_escapes_names(evil_report: dict[str, Any]) -> None:

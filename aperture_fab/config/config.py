@@ -79,7 +79,8 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
             "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
             "gaze_deg", "rotation_mm"),
     "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
-                  "display", "efficiency_weight", "min_efficiency", "plateau_patience",
+                  "display", "efficiency_weight", "min_efficiency", "min_eye_level",
+                  "plateau_patience",
                   "plateau_tolerance", "seed",
                   "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
                   "tail_share", "tracking"),
@@ -95,7 +96,8 @@ _RANGE_NOMINALS = {"eye.pupil_range_mm": "eye.pupil_mm",
 _FLOATS = {
     "display.width_mm", "display.height_mm", "plate.gap_mm", "plate.thickness_mm",
     "eye.pupil_mm", "eye.eye_relief_mm", "optimizer.learning_rate", "optimizer.momentum",
-    "optimizer.efficiency_weight", "optimizer.min_efficiency", "optimizer.plateau_tolerance",
+    "optimizer.efficiency_weight", "optimizer.min_efficiency", "optimizer.min_eye_level",
+    "optimizer.plateau_tolerance",
     "optimizer.quantize_share",
     "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
     "display.cover_glass_mm", "display.cover_glass_index", "display.emission_exponent",
@@ -472,12 +474,13 @@ def resolve(
     eye = _build(Eye, eye_args, layers)
     scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
     optimizer_args = _section(layers, "optimizer")
-    # A tracked design set above the layer that set the light floor drops the floor (a preset's
+    # A tracked design set above the layer that set a light floor drops the floor (a preset's
     # floor holds one display's brightness; a tracked display changes per eye state).
-    if (optimizer_args["tracking"] == "tracked"
-            and layers.sources["optimizer.min_efficiency"][0]
-            < layers.sources["optimizer.tracking"][0]):
-        optimizer_args["min_efficiency"] = 0.0
+    for floor in ("min_efficiency", "min_eye_level"):
+        if (optimizer_args["tracking"] == "tracked"
+                and layers.sources[f"optimizer.{floor}"][0]
+                < layers.sources["optimizer.tracking"][0]):
+            optimizer_args[floor] = 0.0
     optimizer = _build(OptimizerSettings, optimizer_args, layers)
     return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra),
                   fov_from_display=fov_from_display)

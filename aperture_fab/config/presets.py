@@ -131,6 +131,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "display": "optimized",
             "efficiency_weight": 0.0,
             "min_efficiency": LIGHT_FLOOR,
+            "min_eye_level": 0.0,
             "plateau_patience": 60,
             "plateau_tolerance": 1e-4,
             "seed": 0,
@@ -179,6 +180,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "display": "target",
             "efficiency_weight": 0.0,
             "min_efficiency": 0.0,
+            "min_eye_level": 0.0,
             "plateau_patience": 0,  # the dissertation always ran all 300 epochs
             "plateau_tolerance": 1e-4,
             "seed": 0,

@@ -51,6 +51,11 @@ class OptimizerSettings:
     min_efficiency: a brightness floor: the light efficiency (view mean / the open display's)
         each eye state must keep, enforced by a penalty that dominates the image loss below it;
         0 sets no floor.
+    min_eye_level: a floor on the light at the eye: the mean view of the design's display
+        content over each iteration's eye states, as a share of the panel's full white (the
+        panel's luminance times it is the luminance at the eye: 0.01 of a 500 cd/m2 panel is
+        5 cd/m2, photopic). Unlike min_efficiency it counts the content, which a coded plate
+        keeps dark; enforced by the same kind of penalty; 0 sets no floor.
     plateau_patience: stop when the loss has not improved by plateau_tolerance (relative) for
         this many iterations; 0 never stops early.
     plateau_tolerance: relative improvement that counts as progress.
@@ -81,6 +86,7 @@ class OptimizerSettings:
     display: DisplayMode = "optimized"
     efficiency_weight: float = 0.0
     min_efficiency: float = 0.0
+    min_eye_level: float = 0.0
     plateau_patience: int = 60
     plateau_tolerance: float = 1e-4
     seed: int = 0
@@ -126,17 +132,18 @@ class OptimizerSettings:
                 f"optimizer.efficiency_weight = {self.efficiency_weight!r} is out of range; "
                 "allowed: a finite number >= 0 (0 ignores the light level)."
             )
-        if self.min_efficiency > 0 and self.tracking == "tracked":
-            raise ValueError(
-                "optimizer.min_efficiency holds an untracked design's brightness; a tracked "
-                "design's display content changes per eye state, so the floor is not applied to "
-                'it. Use tracking = "untracked" with a floor, or min_efficiency = 0.')
-        if not (math.isfinite(self.min_efficiency) and 0 <= self.min_efficiency < 1):
-            raise ValueError(
-                f"optimizer.min_efficiency = {self.min_efficiency!r} is out of range; allowed: "
-                "0 <= floor < 1 (a share of the open display's light, e.g. 0.005 for 0.5 %; 0 "
-                "sets no floor)."
-            )
+        for name, floor, what in (
+                ("min_efficiency", self.min_efficiency, "of the open display's light"),
+                ("min_eye_level", self.min_eye_level, "of the panel's white at the eye")):
+            if floor > 0 and self.tracking == "tracked":
+                raise ValueError(
+                    f"optimizer.{name} holds an untracked design's brightness; a tracked "
+                    "design's display content changes per eye state, so the floor is not "
+                    f'applied to it. Use tracking = "untracked" with a floor, or {name} = 0.')
+            if not (math.isfinite(floor) and 0 <= floor < 1):
+                raise ValueError(
+                    f"optimizer.{name} = {floor!r} is out of range; allowed: 0 <= floor < 1 "
+                    f"(a share {what}, e.g. 0.005 for 0.5 %; 0 sets no floor).")
         if not (math.isfinite(self.quantize_share) and 0 <= self.quantize_share <= 1):
             raise ValueError(
                 f"optimizer.quantize_share = {self.quantize_share!r} is out of range; allowed: "

@@ -153,14 +153,18 @@ def combine_states(losses: torch.Tensor, weights: torch.Tensor, tail_share: floa
 def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                  targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
                  tail_share: float = 1.0, min_efficiency: float = 0.0,
-                 optics: MadeOptics | None = None, draw: MadeDraw | None = None
-                 ) -> torch.Tensor:
+                 optics: MadeOptics | None = None, draw: MadeDraw | None = None,
+                 min_eye_level: float = 0.0) -> torch.Tensor:
     """The design loss: gain-corrected MSE, averaged over targets, per eye state, plus
     efficiency_weight x (1 - light efficiency) and, below a brightness floor min_efficiency,
-    FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`.
+    FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`;
+    plus, below a floor on the light at the eye min_eye_level, FLOOR_WEIGHT x (1 - level /
+    floor)^2 with level the mean view over states and targets (the mean, as the report judges
+    it: each state's own floor would hold the dimmest state and overshoot the mean).
     optics: view the plate as made (`aperture_fab.optics.as_made`: diffraction, the leakage
     veil, and the errors of one made copy `draw`); None: the geometric view of the holes."""
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
+    eye_level = torch.zeros((), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
         if optics is None:
             views = through = renderer.render_states(a, renderer.display_stack(displays[t]),
@@ -168,6 +172,7 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
         else:
             views, through = made_views(renderer, a, displays[t], states, optics, draw)
         per_state = per_state + gain_mse_states(views, targets[t])
+        eye_level = eye_level + views.mean() / targets.shape[0]
         if efficiency_weight > 0 or min_efficiency > 0:
             # The open display's view of the content is the content over the field, so its
             # mean is the display's mean (the field spans the display from the eyebox; the
@@ -178,7 +183,10 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                 short = torch.clamp(1 - efficiency / min_efficiency, min=0)
                 per_state = per_state + FLOOR_WEIGHT * short**2
     weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
-    return combine_states(per_state / targets.shape[0], weights, tail_share)
+    loss = combine_states(per_state / targets.shape[0], weights, tail_share)
+    if min_eye_level > 0:
+        loss = loss + FLOOR_WEIGHT * torch.clamp(1 - eye_level / min_eye_level, min=0) ** 2
+    return loss
 
 
 def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
@@ -306,7 +314,7 @@ def optimize(
         draw = made_draw(scene, settings, optics, iteration) if snapped else None
         return _design_loss(renderer, plate(iteration), displays, target_t, states,
                             settings.efficiency_weight, settings.tail_share,
-                            settings.min_efficiency, optics, draw)
+                            settings.min_efficiency, optics, draw, settings.min_eye_level)
 
     def keep_continuous() -> None:
         with torch.no_grad():
@@ -435,7 +443,8 @@ def fit_display(
         opt.zero_grad(set_to_none=True)
         loss = _design_loss(renderer, a, shown, target_t,
                             training_states(scene, settings, iteration), 0.0, settings.tail_share,
-                            optics=optics, draw=made_draw(scene, settings, optics, iteration))
+                            optics=optics, draw=made_draw(scene, settings, optics, iteration),
+                            min_eye_level=settings.min_eye_level)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise DivergedError(f"the display fit's loss became {value} at iteration "

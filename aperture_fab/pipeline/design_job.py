@@ -228,10 +228,12 @@ def _white_reach(renderer: Renderer, scene: Scene, settings: OptimizerSettings, 
 def check_light_floor(scene: Scene, settings: OptimizerSettings,
                       bounds: tuple[float, float] | None,
                       fabrication: FabricationSettings | None) -> None:
-    """Refuse, before the work, a brightness floor (optimizer.min_efficiency) that no plate of
-    this scene and process reaches: the brightest, every cell at its largest hole, passes less
-    light (its white efficiency over the eye states of one iteration)."""
-    floor = settings.min_efficiency
+    """Refuse, before the work, a brightness floor (optimizer.min_efficiency, or the light at
+    the eye optimizer.min_eye_level) that no plate of this scene and process reaches: the
+    brightest, every cell at its largest hole, passes less light (its white efficiency over the
+    eye states of one iteration; the light at the eye is at most that, a white content's)."""
+    key, floor = max((("min_efficiency", settings.min_efficiency),
+                      ("min_eye_level", settings.min_eye_level)), key=lambda item: item[1])
     if floor <= 0:
         return
     top = scene.plate.max_open_fraction if bounds is None else bounds[1]
@@ -242,8 +244,10 @@ def check_light_floor(scene: Scene, settings: OptimizerSettings,
     reach = _white_reach(renderer, scene, settings, top)
     if floor > reach:
         process = "" if fabrication is None else f" with process {fabrication.process.name!r}"
+        what = ("the open display's light" if key == "min_efficiency"
+                else "the panel's white at the eye")
         raise ValueError(
-            f"optimizer.min_efficiency = {floor:g} ({floor:.2%} of the open display's light) "
+            f"optimizer.{key} = {floor:g} ({floor:.2%} of {what}) "
             f"cannot be met: the brightest plate{process}, every "
             f"{scene.plate.pitch_mm[0]:g} mm cell at its largest hole in a "
             f"{scene.plate.thickness_mm:g} mm plate, passes {reach:.2%}. Lower the floor to "

@@ -64,8 +64,8 @@ class Preflight:
         bounds = design_bounds(scene, fabrication.process)
         # Exactly what the two checks read (check_light_floor: the floor, the states drawn
         # by eye_states and seed, the bounds, the process's name for its message).
-        key = (scene, settings.min_efficiency, settings.eye_states, settings.seed, bounds,
-               fabrication.process.name)
+        key = (scene, settings.min_efficiency, settings.min_eye_level, settings.eye_states,
+               settings.seed, bounds, fabrication.process.name)
         if key not in self.seen:
             self.seen[key] = _rendered_checks(scene, settings, bounds, fabrication)
         if self.seen[key] is not None:

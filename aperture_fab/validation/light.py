@@ -73,14 +73,16 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
                      assumed_pupil_mm: float, fov_deg: tuple[float, float],
                      min_efficiency: float, efficiency_weight: float, optical_density: float,
                      optical_density_note: str, open_share: float,
+                     min_eye_level: float = 0.0,
                      settings_error: str | None = None) -> dict[str, Any]:
     """report.json's "photometry" block (report.py's PHOTOMETRY).
 
     efficiency: the part as built's light efficiency (mean over targets, nominal eye).
     level: the shown content's mean linear level (`content_level`). min_efficiency,
-    efficiency_weight: the optimizer's brightness floor and light weight. open_share: the
-    plate's open area fraction. settings_error: why the config's [photometry] could not be
-    used (the defaults were), or None.
+    efficiency_weight: the optimizer's brightness floor and light weight. min_eye_level: its
+    floor on the light at the eye (a share of the panel's white; the part's is efficiency x
+    level here). open_share: the plate's open area fraction. settings_error: why the config's
+    [photometry] could not be used (the defaults were), or None.
     """
     budget = light_budget(efficiency, level, settings, assumed_pupil_mm, fov_deg)
     warnings = budget.warnings()
@@ -91,6 +93,7 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
     transmitted = 10.0 ** -optical_density
     leak = math.inf if efficiency <= 0 else transmitted * (1.0 - open_share) / efficiency
     needed = MESOPIC_UPPER_CD_M2 / (settings.panel_luminance_cd_m2 * level) if level > 0 else None
+    eye_floor = float(min_eye_level)
     return {
         "panel_luminance_cd_m2": settings.panel_luminance_cd_m2,
         "light_efficiency": efficiency,
@@ -108,6 +111,9 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
         "min_efficiency": floor,
         "efficiency_weight": float(efficiency_weight),
         "meets_min_efficiency": meets,
+        "photopic_eye_level": MESOPIC_UPPER_CD_M2 / settings.panel_luminance_cd_m2,
+        "min_eye_level": eye_floor,
+        "meets_min_eye_level": None if eye_floor <= 0 else bool(efficiency * level >= eye_floor),
         "warnings": warnings,
         "leakage": {
             "optical_density": float(optical_density),
@@ -136,12 +142,22 @@ def _light_fixes(block: Mapping[str, Any], *, dark: bool, pupil: bool, missed: b
     """What to change for the light verdict's problems, most effective first, leaving out what
     the design already does (a floor is raised or lowered, not set, when it is set)."""
     floor, needed = block["min_efficiency"], block["photopic_efficiency"]
+    eye_floor, photopic = block["min_eye_level"], block["photopic_eye_level"]
     keeps = "" if needed is None else f"about {_pct(needed)} keeps this panel and content photopic"
     fixes = []
+    if dark and not missed and photopic < 1:
+        # The direct fix: the plate's efficiency alone leaves the content dark (a coded plate's
+        # is), so a floor on the light at the eye lets the optimizer brighten both.
+        fixes.append(
+            f"{'Raise' if eye_floor > 0 else 'Set'} the floor on the light at the eye "
+            f"(optimizer.min_eye_level{f', now {_pct(eye_floor)}' if eye_floor > 0 else ''}) "
+            f"to {photopic:.2g} ({MESOPIC_UPPER_CD_M2:g} cd/m2 from this panel) and design "
+            "again: the view gets brighter at some cost in sharpness.")
     if missed:
-        fixes += ["Design again with more iterations (optimizer.iterations) or a larger "
-                  "optimizer.tail_share, so that the part reaches its floor.",
-                  lower_floor_fix(floor)]
+        fixes.append("Design again with more iterations (optimizer.iterations) or a larger "
+                     "optimizer.tail_share, so that the part reaches its floor.")
+        if floor > 0:
+            fixes.append(lower_floor_fix(floor))
     if dark and floor <= 0 and block["efficiency_weight"] <= 0:
         fixes.append("Set optimizer.min_efficiency to the light efficiency the device needs"
                      + (f" ({keeps})" if keeps else "") + " and design again.")
@@ -158,9 +174,10 @@ def _light_fixes(block: Mapping[str, Any], *, dark: bool, pupil: bool, missed: b
 
 
 def light_verdict(block: Mapping[str, Any]) -> Verdict:
-    """Fail when the brightness floor is set and missed by more than FLOOR_FAIL_SHARE of it;
-    warn when the view is mesopic (or darker), when the implied pupil differs from the assumed
-    by more than PUPIL_TOLERANCE_MM, or when the floor is missed by less; pass otherwise."""
+    """Fail when a light floor (the brightness floor, or the floor on the light at the eye) is
+    set and missed by more than FLOOR_FAIL_SHARE of it; warn when the view is mesopic (or
+    darker), when the implied pupil differs from the assumed by more than PUPIL_TOLERANCE_MM,
+    or when a floor is missed by less; pass otherwise."""
     efficiency, floor = block["light_efficiency"], block["min_efficiency"]
     text = (f"The part passes {_pct(efficiency)} of the open display's light (nominal eye, mean "
             f"over targets): a {block['panel_luminance_cd_m2']:.3g} cd/m2 panel showing this "
@@ -182,18 +199,27 @@ def light_verdict(block: Mapping[str, Any]) -> Verdict:
         text += (f" At that light the pupil opens to about {block['implied_pupil_mm']:.1f} mm "
                  "(Watson and Yellott 2012).")
     level = "warn" if problems else "pass"
-    missed = floor > 0 and block["meets_min_efficiency"] is False
-    if missed:
-        short = 1.0 - efficiency / floor
-        problems.append(
-            f"It misses the brightness floor optimizer.min_efficiency = {_pct(floor)} by "
-            f"{_pct(short)} of it.")
-        level = "fail" if short > FLOOR_FAIL_SHARE else "warn"
-    elif floor > 0:
-        text += f" It meets the brightness floor optimizer.min_efficiency = {_pct(floor)}."
-    if level != "pass" and floor <= 0 and block["efficiency_weight"] <= 0:
-        problems.append("Nothing in the design asked for light: optimizer.efficiency_weight "
-                        "and optimizer.min_efficiency are 0.")
+    missed = False
+    eye_floor = block["min_eye_level"]
+    for key, value, bound, what in (
+            ("min_efficiency", efficiency, floor, "the brightness floor"),
+            ("min_eye_level", efficiency * block["content_level"], eye_floor,
+             "the floor on the light at the eye")):
+        if bound > 0 and block[f"meets_{key}"] is False:
+            short = 1.0 - value / bound
+            problems.append(f"It misses {what} optimizer.{key} = {_pct(bound)} by "
+                            f"{_pct(short)} of it.")
+            missed = True
+            if short > FLOOR_FAIL_SHARE:
+                level = "fail"
+            elif level == "pass":
+                level = "warn"
+        elif bound > 0:
+            text += f" It meets {what} optimizer.{key} = {_pct(bound)}."
+    if (level != "pass" and floor <= 0 and eye_floor <= 0
+            and block["efficiency_weight"] <= 0):
+        problems.append("Nothing in the design asked for light: optimizer.efficiency_weight, "
+                        "optimizer.min_efficiency and optimizer.min_eye_level are 0.")
     if not problems:
         text += (f" Photopic, and the pupil within {PUPIL_TOLERANCE_MM:g} mm of the design's.")
     fixes = () if level == "pass" else _light_fixes(block, dark=dark, pupil=pupil,

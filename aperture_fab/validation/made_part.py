@@ -4,15 +4,20 @@ the family of regular pinhole arrays the same process makes.
 Every figure here views the plate through `aperture_fab.optics.as_made`: the holes as made (the
 process's bias in their sizes, a fresh draw of its radius and position errors per made copy),
 diffraction at the holes and the veil the solid leaks. A plate is judged by percentiles of the
-gain-corrected PSNR over (made copies x eye states), pooled, and its light by its efficiency for
-a uniform white display (the mean view through the nominal copy's holes over the eye states,
-the open display's being 1), which does not depend on content.
+gain-corrected PSNR over (made copies x eye states), pooled. Its light is given two ways: its
+efficiency for a uniform white display (the mean view through the nominal copy's holes over the
+eye states, the open display's being 1), a property of the plate alone; and its light at the eye
+(`eye_level`): the mean view of the content it shows, as a share of the panel's full white,
+which the panel's luminance turns into cd/m2. Plates are compared at the light at the eye: a
+plate whose display content is dark (a coded plate's often is, to keep its holes' images apart)
+is dimmer at the eye than its efficiency says, and a rival is only "as bright" when the eye sees
+as much light from it.
 
 The regular family: square lattices of equal holes on the plate's cell grid, every lattice step
 up to `max_pitch_mm` and a ladder of the sizes the process makes, each with the display showing
 its elemental images for the nominal eye (`aperture_fab.optics.baselines`). Its front is, at each
-light level, the best 10th percentile of any array at least that bright; the design is compared
-with the front at its own light (`RegularFront.best_at`).
+light level at the eye, the best 10th percentile of any array at least that bright; the design is
+compared with the front at its own light (`RegularFront.best_at`).
 """
 
 from __future__ import annotations
@@ -57,10 +62,13 @@ class MadeQuality:
 
     psnr_db: (T, copies, S) float64, gain-corrected PSNR per target, made copy and eye state.
     efficiency: the light efficiency for a white display (share of the open display's).
+    eye_level: the light at the eye: the mean view of the shown displays over targets, copies
+        and eye states (veil included), as a share of the panel's full white.
     """
 
     psnr_db: np.ndarray
     efficiency: float
+    eye_level: float
 
     def percentile(self, q: float) -> np.ndarray:
         """(T,) the q-th percentile per target over copies and states pooled."""
@@ -89,6 +97,7 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
     draws = [draw_errors(tuple(open_fraction.shape), optics, rng) if optics.has_errors else None
              for _ in range(count)]
     psnr = np.zeros((len(targets), count, len(states)))
+    level = np.zeros((len(targets), count))
     with torch.no_grad():
         for t, display in enumerate(displays):
             shown = torch.as_tensor(display, dtype=dtype, device=device)
@@ -97,8 +106,9 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
                 views, _ = made_views(renderer, a, shown, states, optics, draw,
                                       stack if draw is None or draw.offset_mm is None else None)
                 psnr[t, k] = gain_psnr_db(views.cpu().double().numpy()[None], targets[t : t + 1])[0]
+                level[t, k] = float(views.mean())
     efficiency = float(white_transmission(renderer, a, states).mean())
-    return MadeQuality(psnr, efficiency)
+    return MadeQuality(psnr, efficiency, float(level.mean()))
 
 
 @dataclass(frozen=True)
@@ -139,53 +149,56 @@ def regular_arrays(scene: Scene, sizes: MadeSizes, max_pitch_mm: float = MAX_REG
 
 @dataclass(frozen=True)
 class RegularFront:
-    """The regular family judged: per array its pitch and diameter (mm), efficiency and PSNR
-    percentiles (p10, p50, p90 per target: (A, T) each)."""
+    """The regular family judged: per array (A) its pitch and diameter (mm), white efficiency,
+    light at the eye (`MadeQuality.eye_level`) and PSNR percentiles (p10, p50, p90 per target:
+    (A, T) each). "At least as bright" means at least as much light at the eye."""
 
     pitch_mm: np.ndarray
     diameter_mm: np.ndarray
     efficiency: np.ndarray
+    eye_level: np.ndarray
     p10: np.ndarray
     p50: np.ndarray
     p90: np.ndarray
 
-    def best_at(self, efficiency: float) -> int | None:
-        """Index of the array with the best p10 (mean over targets) among those at least
-        `efficiency` bright; None when none is."""
-        bright = np.flatnonzero(self.efficiency >= efficiency * (1 - 1e-9))
+    def best_at(self, eye_level: float) -> int | None:
+        """Index of the array with the best p10 (mean over targets) among those with at least
+        `eye_level` light at the eye; None when none is that bright."""
+        bright = np.flatnonzero(self.eye_level >= eye_level * (1 - 1e-9))
         if bright.size == 0:
             return None
         return int(bright[np.argmax(self.p10[bright].mean(1))])
 
     def front(self) -> tuple[np.ndarray, np.ndarray]:
-        """The front as a staircase: efficiencies (increasing) and the best p10 (mean over
-        targets) of the arrays at least that bright."""
-        eff = np.sort(self.efficiency)
+        """The front as a staircase: lights at the eye (increasing) and the best p10 (mean
+        over targets) of the arrays at least that bright."""
+        level = np.sort(self.eye_level)
         p10 = self.p10.mean(1)
-        return eff, np.array([p10[self.efficiency >= e].max() for e in eff])
+        return level, np.array([p10[self.eye_level >= v].max() for v in level])
 
     def subset(self, index: Sequence[int]) -> RegularFront:
         """The arrays at `index`."""
         pick = np.asarray(index, dtype=np.int64)
         return RegularFront(self.pitch_mm[pick], self.diameter_mm[pick], self.efficiency[pick],
-                            self.p10[pick], self.p50[pick], self.p90[pick])
+                            self.eye_level[pick], self.p10[pick], self.p50[pick],
+                            self.p90[pick])
 
     def as_dict(self) -> dict[str, list[float]]:
-        """Plain lists for report.json: per array its pitch, diameter, efficiency and p10 / p50
-        (mean over targets)."""
+        """Plain lists for report.json: per array its pitch, diameter, efficiency, light at
+        the eye and p10 / p50 (mean over targets)."""
         return {"pitch_mm": self.pitch_mm.tolist(), "diameter_mm": self.diameter_mm.tolist(),
-                "efficiency": self.efficiency.tolist(), "p10_db": self.p10.mean(1).tolist(),
-                "p50_db": self.p50.mean(1).tolist()}
+                "efficiency": self.efficiency.tolist(), "eye_level": self.eye_level.tolist(),
+                "p10_db": self.p10.mean(1).tolist(), "p50_db": self.p50.mean(1).tolist()}
 
 
-def rivals_at(front: RegularFront, efficiency: float, per_pitch: int = 2) -> list[int]:
-    """Indices of the arrays that can be the best regular array at least `efficiency` bright:
-    per lattice pitch, the `per_pitch` smallest holes that bright (a larger hole at the same
-    pitch is only blurrier), to judge again with the display fitted."""
+def rivals_at(front: RegularFront, eye_level: float, per_pitch: int = 2) -> list[int]:
+    """Indices of the arrays that can be the best regular array with at least `eye_level`
+    light at the eye: per lattice pitch, the `per_pitch` smallest holes that bright (a larger
+    hole at the same pitch is only blurrier), to judge again with the display fitted."""
     out = []
     for pitch in np.unique(front.pitch_mm):
         bright = np.flatnonzero((front.pitch_mm == pitch)
-                                & (front.efficiency >= efficiency * (1 - 1e-9)))
+                                & (front.eye_level >= eye_level * (1 - 1e-9)))
         out += [int(i) for i in bright[np.argsort(front.diameter_mm[bright])][:per_pitch]]
     return sorted(out)
 
@@ -200,7 +213,7 @@ def regular_front(renderer: Renderer, targets: np.ndarray, arrays: Sequence[Regu
     progress(done, total) is told after each array."""
     scene = renderer.scene
     target_t = torch.as_tensor(targets, dtype=renderer.dtype, device=renderer.device)
-    eff, p10, p50, p90 = [], [], [], []
+    eff, level, p10, p50, p90 = [], [], [], [], []
     for index, regular in enumerate(arrays):
         displays = np.stack([elemental_display(scene, regular.array, t).cpu().double().numpy()
                              for t in target_t])
@@ -209,6 +222,7 @@ def regular_front(renderer: Renderer, targets: np.ndarray, arrays: Sequence[Regu
         quality = judge_made(renderer, targets, regular.array.open_fraction, displays, optics,
                              states, copies, seed)
         eff.append(quality.efficiency)
+        level.append(quality.eye_level)
         p10.append(quality.percentile(10))
         p50.append(quality.percentile(50))
         p90.append(quality.percentile(90))
@@ -216,7 +230,7 @@ def regular_front(renderer: Renderer, targets: np.ndarray, arrays: Sequence[Regu
             progress(index + 1, len(arrays))
     return RegularFront(np.array([r.pitch_mm for r in arrays]),
                         np.array([r.array.diameter_mm for r in arrays]), np.array(eff),
-                        np.array(p10), np.array(p50), np.array(p90))
+                        np.array(level), np.array(p10), np.array(p50), np.array(p90))
 
 
 #: The report's regular search: eye states of the elemental-image pass over the whole family,
@@ -251,7 +265,7 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     arrays = regular_arrays(scene, made_sizes(scene.plate, process, scene.mid_plane_distance_mm))
     family = regular_front(renderer, targets, arrays, optics,
                            distribution.evaluation_states(min(states, family_states)))
-    chosen = sorted(rivals_at(family, part.efficiency),
+    chosen = sorted(rivals_at(family, part.eye_level),
                     key=lambda i: -float(family.p10[i].mean()))[:rivals]
 
     def fit(a: np.ndarray, shown: np.ndarray) -> np.ndarray:
@@ -259,12 +273,12 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
 
     fitted = regular_front(renderer, targets, [arrays[i] for i in chosen], optics, evaluation,
                            copies, seed, fit=fit if fit_iterations > 0 else None)
-    best = fitted.best_at(part.efficiency)
+    best = fitted.best_at(part.eye_level)
     percentiles = {f"p{q}_db": part.percentile(q).tolist() for q in (10, 50, 90)}
     block: dict[str, Any] = {
         "copies": int(part.psnr_db.shape[1]), "states": len(evaluation),
         "neglected": list(NEGLECTED),
-        "part": {"efficiency": part.efficiency, **percentiles,
+        "part": {"efficiency": part.efficiency, "eye_level": part.eye_level, **percentiles,
                  "mean_mse_psnr_db": part.mean_mse_psnr().tolist()},
         "regular": {"family": family.as_dict(), "fitted": fitted.as_dict(), "best": None},
         "margin_db": None,
@@ -274,6 +288,7 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
             "pitch_mm": float(fitted.pitch_mm[best]),
             "diameter_mm": float(fitted.diameter_mm[best]),
             "efficiency": float(fitted.efficiency[best]),
+            "eye_level": float(fitted.eye_level[best]),
             "p10_db": fitted.p10[best].tolist(), "p50_db": fitted.p50[best].tolist(),
             "p90_db": fitted.p90[best].tolist()}
         block["margin_db"] = (part.percentile(10) - fitted.p10[best]).tolist()

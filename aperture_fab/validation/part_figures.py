@@ -169,7 +169,8 @@ def figure_errors(target: np.ndarray, rows: list[tuple[str, np.ndarray]], *,
 
 def figure_made_front(block: Mapping[str, Any], title: str = "The part as made and the regular "
                       "pinhole family") -> bytes:
-    """PNG of p10 PSNR against light efficiency (log) from a "made_part" block
+    """PNG of p10 PSNR against the light at the eye (log; the mean view of the content shown,
+    as a share of the panel's white) from a "made_part" block
     (`aperture_fab.validation.made_part.made_part_block`): every regular array with elemental
     images (colour: pitch), the front they make, the rivals with their display fitted, and the
     part as made."""
@@ -177,21 +178,21 @@ def figure_made_front(block: Mapping[str, Any], title: str = "The part as made a
     part = block["part"]
     fig = _figure(*FRONT_INCHES)
     ax = fig.add_subplot()
-    eff = np.asarray(family["efficiency"]) * 100
+    light = np.asarray(family["eye_level"]) * 100
     p10 = np.asarray(family["p10_db"])
-    points = ax.scatter(eff, p10, s=12, c=family["pitch_mm"], cmap="viridis",
+    points = ax.scatter(light, p10, s=12, c=family["pitch_mm"], cmap="viridis",
                         label="regular arrays, elemental images")
     fig.colorbar(points, ax=ax, label="regular pitch (mm)")
-    levels = np.sort(eff)
-    ax.step(levels, [p10[eff >= e].max() for e in levels], where="post", color="k", lw=0.8,
+    levels = np.sort(light)
+    ax.step(levels, [p10[light >= v].max() for v in levels], where="post", color="k", lw=0.8,
             ls="--", label="their front (best at least this bright)")
-    if fitted["efficiency"]:
-        ax.scatter(np.asarray(fitted["efficiency"]) * 100, fitted["p10_db"], marker="s", s=36,
+    if fitted["eye_level"]:
+        ax.scatter(np.asarray(fitted["eye_level"]) * 100, fitted["p10_db"], marker="s", s=36,
                    facecolors="none", edgecolors="k", label="rivals, display fitted")
-    ax.scatter([100 * part["efficiency"]], [float(np.mean(part["p10_db"]))], marker="*", s=220,
+    ax.scatter([100 * part["eye_level"]], [float(np.mean(part["p10_db"]))], marker="*", s=220,
                c="C3", zorder=3, label="the part as made")
     ax.set_xscale("log")
-    ax.set_xlabel("light efficiency, white display (% of the open display)")
+    ax.set_xlabel("light at the eye with the content shown (% of the panel's white)")
     ax.set_ylabel(f"p10 PSNR, {block['copies']} copies x {block['states']} states (dB)")
     ax.set_title(wrap_to_width(title, 5.2, TITLE_FONT_SIZE), fontsize=TITLE_FONT_SIZE)
     ax.grid(True, which="both", alpha=0.3)

@@ -18,12 +18,13 @@ report.json (`build_report`, checked by `validate_report`, written by `report_js
                     = 0); see EYE_DISTRIBUTION below
     made_part       (optional) the part as made (process errors drawn per made copy, diffraction,
                     the material's veil) over made copies x eye states beside the best regular
-                    array at least as bright: {"copies", "states", "neglected", "part":
-                    {"efficiency", "p10_db", "p50_db", "p90_db", "mean_mse_psnr_db" (per target;
-                    the last: the PSNR of the mean squared error, the optimizer's figure)},
-                    "regular":
-                    {"family", "fitted": per array lists, "best": {"pitch_mm", "diameter_mm",
-                    "efficiency", "p10_db", ...} or null}, "margin_db": per target or null}
+                    array at least as bright at the eye: {"copies", "states", "neglected", "part":
+                    {"efficiency" (white display), "eye_level" (the light at the eye with the
+                    shown content, a share of the panel's white), "p10_db", "p50_db", "p90_db",
+                    "mean_mse_psnr_db" (per target; the last: the PSNR of the mean squared
+                    error, the optimizer's figure)}, "regular": {"family", "fitted": per array
+                    lists, "best": {"pitch_mm", "diameter_mm", "efficiency", "eye_level",
+                    "p10_db", ...} or null}, "margin_db": per target or null}
                     (aperture_fab.validation.made_part.made_part_block), or null
     verdicts        [{"topic", "level" (one of LEVELS), "text", "fixes" (what to change, most
                     effective first, none already applied; absent in older reports)}], most
@@ -71,7 +72,9 @@ PHOTOMETRY (aperture_fab.validation.light; cd/m2, trolands, mm):
     field_area_deg2, observer_age_years, adapted_eyes, regime (photopic, mesopic, scotopic),
     photopic_efficiency (the efficiency that keeps this panel and content photopic, or null),
     min_efficiency (optimizer.min_efficiency, 0 = no floor), efficiency_weight,
-    meets_min_efficiency (null without a floor), warnings [str],
+    meets_min_efficiency (null without a floor), photopic_eye_level (the light at the eye,
+    a share of the panel's white, of a photopic view), min_eye_level (optimizer.min_eye_level,
+    0 = no floor), meets_min_eye_level (null without it), warnings [str],
     leakage {optical_density, optical_density_note, open_share, leakage_share (light through the
     material over the light through the holes; null: unbounded), contrast_ratio (null:
     unlimited)}

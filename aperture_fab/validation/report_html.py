@@ -288,28 +288,32 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
                 "or a part forced past its process's rules).</p>")
     part, best = block["part"], block["regular"]["best"]
     rows = [("the part as made", part["p10_db"], part["p50_db"], part["p90_db"],
-             part["efficiency"])]
+             part["efficiency"], part["eye_level"])]
     if best is not None:
-        rows.append((f"best regular array at least as bright: {best['pitch_mm']:g} mm pitch, "
-                     f"{1000 * best['diameter_mm']:.0f} um holes, display fitted",
-                     best["p10_db"], best["p50_db"], best["p90_db"], best["efficiency"]))
+        rows.append((f"best regular array at least as bright at the eye: {best['pitch_mm']:g} "
+                     f"mm pitch, {1000 * best['diameter_mm']:.0f} um holes, display fitted",
+                     best["p10_db"], best["p50_db"], best["p90_db"], best["efficiency"],
+                     best["eye_level"]))
     cells = "".join(
         f"<tr><td>{e(name)}</td>" + "".join(
             f'<td class="n">{" / ".join(f"{v:.1f}" for v in values)}</td>'
             for values in (p10, p50, p90))
-        + f'<td class="n">{100 * light:.3g} %</td></tr>'
-        for name, p10, p50, p90, light in rows)
+        + f'<td class="n">{100 * white:.3g} %</td><td class="n">{100 * eye:.3g} %</td></tr>'
+        for name, p10, p50, p90, white, eye in rows)
     margin = block.get("margin_db")
     note = ("" if margin is None else
-            f"<p>Margin at equal or more light: <b>{' / '.join(f'{m:+.1f}' for m in margin)} "
-            "dB</b> (per target).</p>")
+            "<p>Margin over it (at equal or more light at the eye): <b>"
+            f"{' / '.join(f'{m:+.1f}' for m in margin)} dB</b> (per target).</p>")
     return figure_grid([
         f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "
         f"position errors drawn afresh for each) x {block['states']} eye states, with "
-        "diffraction at the holes and the veil the plate's material leaks; light for a white "
-        "display. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
+        "diffraction at the holes and the veil the plate's material leaks. Light: for a white "
+        "display (the plate's efficiency), and at the eye with the content each shows (a share "
+        "of the panel's white), by which the plates are compared: a dark content dims the view "
+        "as much as small holes do. Not modelled: " + e("; ".join(block["neglected"])) + ".</p>"
         "<table><tr><th>plate</th><th>p10 (dB)</th><th>p50 (dB)</th><th>p90 (dB)</th>"
-        f"<th>light</th></tr>{cells}</table>{note}", _img(figures, "made_front")])
+        f"<th>light, white</th><th>light at the eye</th></tr>{cells}</table>{note}",
+        _img(figures, "made_front")])
 
 
 def _header(report: Mapping[str, Any], targets: Sequence[str]) -> str:

@@ -14,7 +14,7 @@ __all__ = ["FABRICATION_KEYS", "LEVELS", "METRICS_SPEC", "PERCENTILES", "REGIMES
            "REPORT_VARIANTS", "SCHEMA_VERSION", "Kind", "check_block", "validate_report"]
 
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 
 # Views of the registry (aperture_fab.validation.variants) in the forms the report uses.
@@ -96,8 +96,8 @@ _MADE_PART_SPEC: dict[str, Kind] = {"copies": "int", "states": "int", "neglected
                                     "part": "dict", "regular": "dict"}
 
 
-_MADE_FIGURES_SPEC: dict[str, Kind] = {"efficiency": "number", "p10_db": "list",
-                                       "p50_db": "list", "p90_db": "list"}
+_MADE_FIGURES_SPEC: dict[str, Kind] = {"efficiency": "number", "eye_level": "number",
+                                       "p10_db": "list", "p50_db": "list", "p90_db": "list"}
 
 
 _RUN_SPEC: dict[str, Kind] = {"part": "str", "process": "str", "date": "str",
@@ -110,7 +110,9 @@ _PHOTOMETRY_SPEC: dict[str, Kind] = {
     "assumed_pupil_mm": "number", "implied_pupil_mm": "number", "pupil_source": "str",
     "field_area_deg2": "number", "observer_age_years": "number", "adapted_eyes": "int",
     "regime": "str", "photopic_efficiency": "number or null", "min_efficiency": "number",
-    "efficiency_weight": "number", "meets_min_efficiency": "bool or null", "warnings": "list",
+    "efficiency_weight": "number", "meets_min_efficiency": "bool or null",
+    "photopic_eye_level": "number", "min_eye_level": "number",
+    "meets_min_eye_level": "bool or null", "warnings": "list",
     "leakage": "dict",
 }
 

@@ -253,14 +253,17 @@ def made_verdict(block: Mapping[str, Any], report: Mapping[str, Any] | None = No
     p10 = min(part["p10_db"])
     where = (f"As made ({block['copies']} made copies x {block['states']} eye states, "
              f"diffraction and the material's veil included), the part's 10th percentile is "
-             f"{p10:.1f} dB at {100 * part['efficiency']:.2g} % light")
+             f"{p10:.1f} dB at {100 * part['efficiency']:.2g} % light ("
+             f"{100 * part['eye_level']:.2g} % of the panel's white at the eye with its "
+             "content)")
     if best is None:
         return Verdict(MADE_TOPIC, "info", where + "; no regular array the process makes is "
                        "that bright, so none is compared.")
     margin = min(block["margin_db"])
-    rival = (f"the best regular array at least as bright ({best['pitch_mm']:g} mm pitch, "
-             f"{1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g} % "
-             f"light, display fitted) reaches {min(best['p10_db']):.1f} dB")
+    rival = (f"the best regular array at least as bright at the eye ({best['pitch_mm']:g} mm "
+             f"pitch, {1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g}"
+             f" % light, {100 * best['eye_level']:.2g} % at the eye, display fitted) reaches "
+             f"{min(best['p10_db']):.1f} dB")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
                        f"{MADE_MARGIN_DB:g} dB better.")
