@@ -53,6 +53,11 @@ TRACKED_SOLVE_ITERATIONS = 2
 #: Weight of the brightness floor's penalty (1 - efficiency / floor)^2: a state 10 % below the
 #: floor costs 0.01, more than a typical image loss (MSE 1e-3), so the floor holds to a few %.
 FLOOR_WEIGHT = 1.0
+#: Above the floor on the light at the eye by more than this share, the display content is
+#: scaled down to it after the step. The image loss is blind to the content's scale, so nothing
+#: else brings it down once the penalty's first steps have overshot (they left the view at twice
+#: a floor of 1 % on natural, its content clipped at 1), and a dimmer content has more headroom.
+EYE_FLOOR_HEADROOM = 0.05
 
 
 @dataclass(frozen=True)
@@ -154,7 +159,8 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
                  targets: torch.Tensor, states: EyeStates, efficiency_weight: float,
                  tail_share: float = 1.0, min_efficiency: float = 0.0,
                  optics: MadeOptics | None = None, draw: MadeDraw | None = None,
-                 min_eye_level: float = 0.0) -> torch.Tensor:
+                 min_eye_level: float = 0.0, seen: dict[str, float] | None = None
+                 ) -> torch.Tensor:
     """The design loss: gain-corrected MSE, averaged over targets, per eye state, plus
     efficiency_weight x (1 - light efficiency) and, below a brightness floor min_efficiency,
     FLOOR_WEIGHT x (1 - efficiency / floor)^2; combined over the states by `combine_states`;
@@ -162,7 +168,8 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     floor)^2 with level the mean view over states and targets (the mean, as the report judges
     it: each state's own floor would hold the dimmest state and overshoot the mean).
     optics: view the plate as made (`aperture_fab.optics.as_made`: diffraction, the leakage
-    veil, and the errors of one made copy `draw`); None: the geometric view of the holes."""
+    veil, and the errors of one made copy `draw`); None: the geometric view of the holes.
+    seen: when given, receives "eye_level", that mean (a float)."""
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     eye_level = torch.zeros((), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
@@ -186,7 +193,18 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     loss = combine_states(per_state / targets.shape[0], weights, tail_share)
     if min_eye_level > 0:
         loss = loss + FLOOR_WEIGHT * torch.clamp(1 - eye_level / min_eye_level, min=0) ** 2
+    if seen is not None:
+        seen["eye_level"] = float(eye_level.detach())
     return loss
+
+
+def _hold_eye_floor(display: torch.Tensor, seen: dict[str, float], floor: float) -> None:
+    """Scale the display content (in place) down to EYE_FLOOR_HEADROOM above the floor on the
+    light at the eye when the last loss saw it higher (the view is linear in the content)."""
+    level, top = seen.get("eye_level", 0.0), floor * (1 + EYE_FLOOR_HEADROOM)
+    if floor > 0 and level > top:
+        with torch.no_grad():
+            display.mul_(top / level)
 
 
 def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
@@ -304,6 +322,8 @@ def optimize(
             return _snapped(a, made)
         return a
 
+    seen: dict[str, float] = {}  # the last loss's light at the eye (_hold_eye_floor)
+
     def loss_fn(iteration: int) -> torch.Tensor:
         states = training_states(scene, settings, iteration)
         if settings.tracking == "tracked" and display_param is not None:
@@ -314,7 +334,7 @@ def optimize(
         draw = made_draw(scene, settings, optics, iteration) if snapped else None
         return _design_loss(renderer, plate(iteration), displays, target_t, states,
                             settings.efficiency_weight, settings.tail_share,
-                            settings.min_efficiency, optics, draw, settings.min_eye_level)
+                            settings.min_efficiency, optics, draw, settings.min_eye_level, seen)
 
     def keep_continuous() -> None:
         with torch.no_grad():
@@ -369,6 +389,7 @@ def optimize(
             if display_param is not None:
                 with torch.no_grad():
                     display_param.clamp_(0, 1)
+                _hold_eye_floor(display_param, seen, settings.min_eye_level)
             state["history"].append(value)
             if value < state["best"] * (1 - settings.plateau_tolerance):
                 state["best"], state["best_iteration"] = value, iteration
@@ -435,6 +456,7 @@ def fit_display(
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
     opt = torch.optim.Adam([shown], lr=settings.learning_rate)
     schedule = replace(settings, iterations=iterations)
+    seen: dict[str, float] = {}
     history = []
     for iteration in tqdm(range(iterations), desc="fit display", disable=not progress,
                           leave=False):
@@ -444,7 +466,7 @@ def fit_display(
         loss = _design_loss(renderer, a, shown, target_t,
                             training_states(scene, settings, iteration), 0.0, settings.tail_share,
                             optics=optics, draw=made_draw(scene, settings, optics, iteration),
-                            min_eye_level=settings.min_eye_level)
+                            min_eye_level=settings.min_eye_level, seen=seen)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise DivergedError(f"the display fit's loss became {value} at iteration "
@@ -453,5 +475,6 @@ def fit_display(
         opt.step()
         with torch.no_grad():
             shown.clamp_(0, 1)
+        _hold_eye_floor(shown, seen, settings.min_eye_level)
         history.append(value)
     return shown.detach().cpu().double().numpy(), np.asarray(history)
