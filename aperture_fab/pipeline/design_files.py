@@ -90,7 +90,8 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
 
 
 def write_outputs(folder: Path, result: DesignResult) -> None:
-    """design.npz, display and view PNGs, loss curve, design.json."""
+    """design.npz, design.toml, display and view PNGs, loss curve (design.json comes last,
+    `write_summary`, with the figures of the part as written)."""
     from aperture_fab.validation.figures import figure_loss
 
     d = result.design
@@ -114,7 +115,6 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
             scaled = view * gain(view, result.targets[t])
             write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
     write_atomic(folder / "loss.png", figure_loss(d.loss_history))
-    write_summary(folder, result)
 
 
 def write_summary(folder: Path, result: DesignResult) -> None:

@@ -407,8 +407,8 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                     per_target = [checked.metrics[variant][name] for name in result.names]
                     result.metrics[variant] = {key: [m[key] for m in per_target]
                                                for key in ("mse", "psnr_db")}
-                write_summary(stage_folder, result)  # design.json again, with the validated figures
-                staged(stage_folder)
+        write_summary(stage_folder, result)  # with the figures of the part as written
+        staged(stage_folder)
         if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
             from aperture_fab.pipeline.assembly_job import write_assembly
 
