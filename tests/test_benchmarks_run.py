@@ -295,3 +295,22 @@ def test_bench_gap_scale_quick(tmp_path: Path) -> None:
         assert _positive(row["nominal_psnr_db"])
         for e in row["errors"]:
             assert e["scaled_vs_nominal_view_db"] > 25
+
+
+@pytest.mark.slow
+def test_bench_made_part_quick(tmp_path: Path) -> None:
+    """The part as made against the regular family: the figures are written, the light at the
+    eye is in cd/m2 for the panel, and the best rival is at least as bright at the eye."""
+    out = tmp_path / "made.json"
+    rows = _load("bench_made_part").main(["--quick", "--json", str(out), "--plot",
+                                          str(tmp_path)])
+    assert json.loads(out.read_text()) == rows
+    for row in rows:
+        for key in ("p10_db", "efficiency", "eye_level", "eye_cd_m2", "optimizer_db"):
+            assert _positive(row[key]), key
+        assert row["eye_cd_m2"] == pytest.approx(row["eye_level"] * row["panel_cd_m2"])
+        assert row["eye_level"] < row["efficiency"]  # the content is darker than white
+        if row.get("margin_db") is not None:
+            assert row["best_eye_level"] >= row["eye_level"] * (1 - 1e-9)
+            assert row["margin_db"] == pytest.approx(row["p10_db"] - row["best_p10_db"])
+        assert (tmp_path / f"made_part_{row['target']}.png").stat().st_size > 0
