@@ -39,4 +39,6 @@ bench cpu 120 --device cpu --cases near-eye nominal seed-28
 echo "== profile"
 (cd benchmarks && timeout 90 "$py" profile_iteration.py --device cuda --cases near-eye nominal \
     seed-28) > "$out/profile.log" 2>&1 || status=1
+echo "== CUDA graph probe"
+timeout 90 "$py" benchmarks/probe_cuda_graph.py 2>&1 | tee "$out/graph.log" || status=1
 exit $status

@@ -314,3 +314,16 @@ def test_bench_made_part_quick(tmp_path: Path) -> None:
             assert row["best_eye_level"] >= row["eye_level"] * (1 - 1e-9)
             assert row["margin_db"] == pytest.approx(row["p10_db"] - row["best_p10_db"])
         assert (tmp_path / f"made_part_{row['target']}.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_probe_cuda_graph_runs_and_leaves_the_walk_as_it_was(
+        bench_optimize: ModuleType) -> None:
+    """Without CUDA the probe times the eager iteration on the CPU kernels; its fixed walk plan
+    is undone afterwards (it patches the library for the capture only)."""
+    from aperture_fab.optics import fused_views
+
+    planned = fused_views._walk_plan
+    found = _load("probe_cuda_graph").main(["--iterations", "3"])
+    assert _positive(found["eager_s"])
+    assert fused_views._walk_plan is planned
