@@ -13,8 +13,8 @@ from aperture_fab.config.presets import LIGHT_FLOOR
 from aperture_fab.fabrication.part import FabricationSettings
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.optimizer import EYE_FLOOR_HEADROOM
 from aperture_fab.optics.open_view import render_open
+from aperture_fab.optimize.optimizer import EYE_FLOOR_HEADROOM
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import digit
 
