@@ -66,11 +66,13 @@ def test_the_floor_on_the_light_at_the_eye_holds_and_costs_quality() -> None:
     assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
 
 
-def test_a_floor_on_the_light_at_the_eye_no_plate_reaches_is_refused_before_the_work() -> None:
-    config = tiny_config(**{"optimizer.min_eye_level": 0.6, "plate.thickness_mm": 0.005})
-    with pytest.raises(ValueError, match=r"optimizer.min_eye_level = 0.6 \(60.00% of the panel's "
-                       r"white at the eye\) cannot be met: the brightest plate with process "
-                       r"'photomask'.* passes \d+\.\d+%. Lower the floor to"):
+@pytest.mark.parametrize(("key", "light"), [("min_efficiency", "the open display's light"),
+                                            ("min_eye_level", "the panel's white at the eye")])
+def test_a_floor_no_plate_reaches_is_refused_before_the_work(key: str, light: str) -> None:
+    config = tiny_config(**{f"optimizer.{key}": 0.6, "plate.thickness_mm": 0.005})
+    with pytest.raises(ValueError, match=rf"optimizer.{key} = 0.6 \(60.00% of {light}\) cannot "
+                       r"be met: the brightest plate with process 'photomask'.* passes "
+                       r"\d+\.\d+%. Lower the floor to"):
         design([digit("3")], config,
                fabrication=FabricationSettings(resolve_process("photomask")))
 

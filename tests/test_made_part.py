@@ -1,7 +1,7 @@
 """The part as made and the regular family (aperture_fab.validation.made_part): the front's
 logic against brute force, the known best regular array (the smallest hole without diffraction,
-near sqrt(2.44 lambda h) with it), the as-made model against the written part, the verdict, and a
-light floor that no plate reaches refused before the work."""
+near sqrt(2.44 lambda h) with it), the light at the eye, the as-made model against the written
+part, and the verdict. (A light floor that no plate reaches: tests/test_brightness_floor.py.)"""
 
 from __future__ import annotations
 
@@ -197,17 +197,6 @@ def test_mean_mse_psnr_is_the_psnr_of_the_mean_error(psnr: list[float]) -> None:
     assert values.min() - 1e-9 <= figure <= values.mean() + 1e-9
     flat = MadeQuality(np.full((1, 2, 3), values[0]), 0.01, 0.003)
     assert float(flat.mean_mse_psnr()[0]) == pytest.approx(values[0], abs=1e-9)
-
-
-# -- the light floor ----------------------------------------------------------------------------
-
-def test_a_floor_no_plate_reaches_is_refused_before_the_work():
-    config = tiny_config(**{"optimizer.min_efficiency": 0.6, "plate.thickness_mm": 0.005})
-    with pytest.raises(ValueError, match=r"optimizer.min_efficiency = 0.6 \(60.00% of the open "
-                       r"display's light\) cannot be met: the brightest plate with process "
-                       r"'photomask'.* passes \d+\.\d+%. Lower the floor to"):
-        design([digit("3")], config,
-               fabrication=FabricationSettings(resolve_process("photomask")))
 
 
 # -- the verdict --------------------------------------------------------------------------------
