@@ -169,7 +169,7 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     it: each state's own floor would hold the dimmest state and overshoot the mean).
     optics: view the plate as made (`aperture_fab.optics.as_made`: diffraction, the leakage
     veil, and the errors of one made copy `draw`); None: the geometric view of the holes.
-    seen: when given, receives "eye_level", that mean (a float)."""
+    seen: when given (and the floor set), receives "eye_level", that mean (a float)."""
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     eye_level = torch.zeros((), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
@@ -179,7 +179,8 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
         else:
             views, through = made_views(renderer, a, displays[t], states, optics, draw)
         per_state = per_state + gain_mse_states(views, targets[t])
-        eye_level = eye_level + views.mean() / targets.shape[0]
+        if min_eye_level > 0:
+            eye_level = eye_level + views.mean() / targets.shape[0]
         if efficiency_weight > 0 or min_efficiency > 0:
             # The open display's view of the content is the content over the field, so its
             # mean is the display's mean (the field spans the display from the eyebox; the
@@ -193,8 +194,8 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     loss = combine_states(per_state / targets.shape[0], weights, tail_share)
     if min_eye_level > 0:
         loss = loss + FLOOR_WEIGHT * torch.clamp(1 - eye_level / min_eye_level, min=0) ** 2
-    if seen is not None:
-        seen["eye_level"] = float(eye_level.detach())
+        if seen is not None:
+            seen["eye_level"] = float(eye_level.detach())
     return loss
 
 
