@@ -1,4 +1,4 @@
-"""The part as made against the best regular pinhole array at equal light (issue 22's figures).
+"""The part as made against the best regular pinhole array at equal light at the eye (issue 22).
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
@@ -151,7 +151,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="draws of the tolerance yield (the report's 16 pin a yield loosely: "
                         "64 give a 90 %% interval of about +-6 points at 90 %%)")
     parser.add_argument("--rivals", type=int, default=6,
-                        help="regular rivals at the part's light whose display is fitted")
+                        help="regular rivals at least as bright at the eye whose display is "
+                        "fitted")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--plot", type=Path, default=None, help="folder for the front plots")

@@ -253,8 +253,8 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
                     ) -> dict[str, Any]:
     """report.json's "made_part" block: the part as made (made open fractions (rows, cols),
     displays (T, C, H, W)) over `copies` made copies x `states` eye states, and the best
-    regular array at least as bright, searched over the family with elemental images
-    (family_states eye states), its `rivals` best rivals at the part's light judged again with
+    regular array at least as bright at the eye, searched over the family with elemental
+    images (family_states eye states), its `rivals` best rivals that bright judged again with
     the display fitted like the part's (fit_iterations of `fit_display` on the same as-made
     loss; 0: elemental images)."""
     renderer = Renderer(scene, device=device, dtype=dtype)

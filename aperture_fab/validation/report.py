@@ -167,9 +167,10 @@ FIGURE_KEYS: dict[str, str] = {
             "light and eye-state terms).",
     "made_front": "The part as made (star) and the regular pinhole arrays the same process "
                   "makes, judged the same way (made copies x eye states, diffraction, the "
-                  "material's veil): 10th-percentile PSNR against light efficiency for a white "
-                  "display. Dots: every array with elemental images (colour: pitch); dashed: "
-                  "their front; squares: the rivals at the part's light with the display fitted "
+                  "material's veil): 10th-percentile PSNR against the light at the eye (the "
+                  "mean view of the content each shows, a share of the panel's white). Dots: "
+                  "every array with elemental images (colour: pitch); dashed: their front; "
+                  "squares: the rivals at least as bright at the eye with the display fitted "
                   "like the part's.",
     "eyebox": "What the eye sees through the part as built from each of the scene's eye "
               "positions (eye.positions_mm), titled with the position and its PSNR.",

@@ -246,7 +246,7 @@ def _made_fixes(report: Mapping[str, Any] | None) -> tuple[str, ...]:
 
 def made_verdict(block: Mapping[str, Any], report: Mapping[str, Any] | None = None) -> Verdict:
     """The part as made (process errors, diffraction, the material's veil) over made copies x
-    eye states against the best regular array the process makes at least as bright.
+    eye states against the best regular array the process makes at least as bright at the eye.
     report: the report holding the block, so that a fix the design already applied (its
     process, config.optimizer) is not proposed; None proposes them all."""
     part, best = block["part"], block["regular"]["best"]
