@@ -569,7 +569,7 @@ def measure(case: Case, device_name: str, quick: bool, count_pairs: bool) -> dic
         a0, _ = initial_design(scene, views, shown, settings)
         pairs, evaluations = kernel_pairs(renderer, a0, states)
         raw["evaluations"] = evaluations
-        shape = budget.stack_shape(scene)
+        shape = renderer.shape
         isz = torch.empty((), dtype=dtype).element_size()
         stack = raw["channels"] * shape.levels * shape.height * shape.width * isz
         ny = scene.eye.view_pixels[1]

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.model import Renderer, stack_shape
 from aperture_fab.optimize import budget
 
 GB = 1e9
@@ -34,10 +34,13 @@ def _config(preset: str = "near-eye", **overrides: object):
         ("near-eye", {"eye.focus_mm": 300.0, "plate.pitch_mm": 0.1, "plate.cells": [200, 200]}),
     ],
 )
-def test_stack_shape_is_the_renderers(preset: str, overrides: dict[str, object]) -> None:
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_stack_shape_is_the_renderers(preset: str, overrides: dict[str, object],
+                                      oversample: int) -> None:
+    """The shape the budget counts is the stack the renderer builds."""
     scene = _config(preset, **overrides).scene
-    renderer = Renderer(scene)
-    shape = budget.stack_shape(scene)
+    renderer = Renderer(scene, oversample=oversample)
+    shape = stack_shape(scene, oversample)
     stack = renderer.display_stack(torch.zeros(1, scene.display.pixels[1],
                                                scene.display.pixels[0]))
     assert stack.shape[2:] == (shape.levels, shape.height, shape.width)

@@ -20,6 +20,7 @@ from aperture_fab.config.config import Config
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.budget import OPTIMIZER_OVERSAMPLE
 from aperture_fab.optimize.optimizer import DivergedError, Interrupted, MaskDesign, optimize
 from aperture_fab.optimize.start import initial_design
 from aperture_fab.targets import asymmetric_marker, checker
@@ -63,8 +64,10 @@ def closed_form_gain_mse(view: np.ndarray, target: np.ndarray) -> float:
 
 def rendered_loss(config: Config, open_fraction: np.ndarray, display: np.ndarray,
                   target: np.ndarray) -> float:
-    """The loss of a plate and display, rendered afresh and judged by the closed form."""
-    renderer = Renderer(config.scene, device="cpu", dtype=torch.float64)
+    """The loss of a plate and display, rendered afresh (as the optimizer renders) and judged
+    by the closed form."""
+    renderer = Renderer(config.scene, device="cpu", dtype=torch.float64,
+                        oversample=OPTIMIZER_OVERSAMPLE)
     view = renderer.render(torch.as_tensor(open_fraction), torch.as_tensor(display)).numpy()
     return closed_form_gain_mse(view, target)
 

@@ -77,9 +77,11 @@ def test_design_returns_views_and_metrics_of_every_variant(make_config: MakeConf
                                     rel=1e-6)
         assert result.metrics[variant]["psnr_db"] == pytest.approx(
             [10 * math.log10(1 / mse[0])], rel=1e-9)
-    # The initial view is the optimizer's start and the optimized view its end.
+    # The initial view is the optimizer's start and the optimized view its end. The optimizer
+    # samples the display stack once per pixel, the judgement twice (tests/test_optimize.py
+    # holds the optimizer's loss to a render at its own sampling).
     initial = result.metrics["initial"]["mse"][0]
-    assert initial == pytest.approx(result.design.loss_history[0], rel=1e-6)
+    assert initial == pytest.approx(result.design.loss_history[0], rel=0.1)
     assert result.metrics["optimized"]["mse"][0] < initial
     # Without a plate the eye cannot focus on the display: the open view is the worst.
     assert result.metrics["open"]["mse"][0] > result.metrics["optimized"]["mse"][0]

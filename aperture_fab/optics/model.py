@@ -33,6 +33,7 @@ import copy
 import importlib.util
 import math
 import os
+from dataclasses import dataclass
 from typing import Literal, cast
 
 import numpy as np
@@ -46,11 +47,26 @@ from aperture_fab.optics.pair_table import Pairs, build_pairs, render_table
 from aperture_fab.optics.planes import EPS, Optics
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 
-__all__ = ["BACKENDS", "Backend", "Renderer", "Running", "backend_for"]
+__all__ = [
+    "BACKENDS",
+    "STACK_OVERSAMPLE",
+    "Backend",
+    "Renderer",
+    "Running",
+    "StackShape",
+    "backend_for",
+    "stack_shape",
+]
 
 #: Spacing of the blur-stack radius levels in display pixels (finer: smaller interpolation error).
 LEVEL_SPACING_PX = 0.5
 MAX_LEVELS = 24
+#: Stack samples per display pixel along each axis. The stack is read bilinearly between its
+#: samples, and the display's mean over a window is only piecewise smooth (pixel edges): one
+#: sample per pixel left about 2 % rms error on high-contrast content (a line-pair design's view
+#: 33.3 dB against the mesh re-trace, whose noise alone allows 41 dB); two leave 39.7 dB
+#: (docs/model.md, "Approximations").
+STACK_OVERSAMPLE = 2
 #: Quadrature points over a window disk when building the blur kernels.
 DISK_RINGS = 24
 DISK_SPOKES = 48
@@ -71,19 +87,19 @@ def _trapezoid(offset_mm: np.ndarray, pixel_mm: float, box_mm: float) -> np.ndar
 
 def _window_kernels(
     pixel_mm: tuple[float, float], box_mm: tuple[float, float], radii_mm: np.ndarray,
-    shift_mm: float = 0.0,
+    shift_mm: float = 0.0, slack_mm: float = 0.0,
 ) -> np.ndarray:
-    """Weights (L, 2k+1, 2k+1) of display pixels around a sample point at a pixel centre.
+    """Weights (L, 2k+1, 2k+1) of stack samples around a sample point at a sample's centre.
 
     Level l is the mean over a disk of radius radii_mm[l], smeared by the view pixel's box, of a
-    display that is constant over each pixel, each pixel's emitting area moved by shift_mm along
-    +x (a sub-pixel stripe's offset; |shift_mm| <= a third of a pixel, which the kernel's one
-    pixel of slack covers). Rows run toward -y like images; the kernels are symmetric (for
-    shift_mm = 0) so the sign does not matter.
+    display that is constant over each sample's box (pixel_mm), each box's emitting area moved
+    by shift_mm along +x (a sub-pixel stripe's offset). The kernels reach far enough for any
+    shift up to slack_mm (at least half a sample), so kernels of different shifts have one size.
+    Rows run toward -y like images; the kernels are symmetric (for shift_mm = 0) so the sign
+    does not matter.
     """
     wx, wy = pixel_mm
-    reach = float(radii_mm.max()) + max(box_mm) / 2
-    k = math.ceil(reach / min(wx, wy) + 1)
+    k = _kernel_reach(pixel_mm, box_mm, float(radii_mm.max()), slack_mm)
     off = np.arange(-k, k + 1)
     # Disk quadrature: equal-area rings, uniform spokes.
     rings = np.sqrt((np.arange(DISK_RINGS) + 0.5) / DISK_RINGS)
@@ -101,6 +117,85 @@ def _window_kernels(
         kernel = ty @ tx.T / points.shape[1]  # (rows, cols)
         kernels.append(kernel / kernel.sum())
     return np.stack(kernels)
+
+
+def _fast_length(n: int) -> int:
+    """The smallest length >= n whose only prime factors are 2, 3, 5 and 7: FFTs of such
+    lengths are several times faster than of lengths with a large prime factor."""
+    while True:
+        m = n
+        for p in (2, 3, 5, 7):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
+
+
+@dataclass(frozen=True)
+class StackShape:
+    """The display stack a Renderer builds: C x levels x height x width samples (the display
+    split into oversample x oversample samples per pixel, padded by pad samples per side),
+    pre-filtered through FFTs of fft_height x fft_width by window kernels kernel_size samples
+    wide.
+
+    pixels: (x, y) samples of the unpadded display; pixel_mm: (x, y) one sample's size (mm).
+    window_max_mm: the largest window radius on the display; radii_mm: (levels,) float64 the
+    levels' window radii (mm), uniform in radius squared. box_mm: (x, y) the view pixel's box on
+    the display (mm). slack_mm: the largest sub-pixel stripe offset the kernels reach for.
+    """
+
+    levels: int
+    height: int
+    width: int
+    fft_height: int
+    fft_width: int
+    kernel_size: int
+    pad: int
+    pixels: tuple[int, int]
+    pixel_mm: tuple[float, float]
+    window_max_mm: float
+    radii_mm: np.ndarray
+    box_mm: tuple[float, float]
+    slack_mm: float
+
+
+def stack_shape(scene: Scene, oversample: int = STACK_OVERSAMPLE) -> StackShape:
+    """The display stack's shape, levels and kernels' extent for a scene (see StackShape)."""
+    if not (isinstance(oversample, int) and oversample >= 1):
+        raise ValueError(f"oversample = {oversample!r}; allowed: an integer >= 1 (stack "
+                         "samples per display pixel along each axis).")
+    optics = Optics.of(scene)
+    plate, eye, display = scene.plate, scene.eye, scene.display
+    # Wide enough for an eye focused at infinity too (|mu| = 1), for eye states off nominal.
+    window_max = max(abs(optics.window_scale), 1.0) * plate.max_radius_mm
+    levels = math.ceil(window_max / (LEVEL_SPACING_PX * min(display.pixel_mm))) + 1
+    levels = min(MAX_LEVELS, max(2, levels))
+    # The view pixel's box on the display, at the nominal focus (see docs/model.md); cover
+    # glass slows the window's motion by its paraxial apparent-depth loss t_g (1 - 1/n).
+    rate = optics.window_rate
+    if display.cover_glass_mm > 0:
+        rate = max(rate - display.cover_glass_mm * (1 - 1 / display.cover_glass_index), 0.0)
+    box = (rate * eye.view_step[0], rate * eye.view_step[1])
+    pixel_mm = (display.pixel_mm[0] / oversample, display.pixel_mm[1] / oversample)
+    offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
+    slack = 0.0 if offsets_px is None else max(map(abs, offsets_px)) * display.pixel_mm[0]
+    size = 2 * _kernel_reach(pixel_mm, box, window_max, slack) + 1
+    pad = size // 2 + 1
+    pixels = (display.pixels[0] * oversample, display.pixels[1] * oversample)
+    height, width = pixels[1] + 2 * pad, pixels[0] + 2 * pad
+    return StackShape(levels, height, width, _fast_length(height + size - 1),
+                      _fast_length(width + size - 1), size, pad, pixels, pixel_mm, window_max,
+                      window_max * np.sqrt(np.linspace(0, 1, levels)), box, slack)
+
+
+def _kernel_reach(pixel_mm: tuple[float, float], box_mm: tuple[float, float],
+                  radius_mm: float, slack_mm: float) -> int:
+    """Samples a window kernel reaches on each side of its centre: the window's radius, half the
+    view pixel's box, a stripe's offset up to slack_mm (at least half a sample) and half a
+    sample of the sample's own box."""
+    step = min(pixel_mm)
+    return math.ceil((radius_mm + max(box_mm) / 2 + max(slack_mm, step / 2)) / step + 0.5)
 
 
 def _checked_offsets(scene: Scene, offsets: np.ndarray | None) -> np.ndarray | None:
@@ -179,6 +274,8 @@ class Renderer:
         `aperture_fab.optics.gpu_kernels`), "torch" (pair tables and grid_sample: the reference
         the kernels are tested against) or "auto" (kernel on the CPU, triton on CUDA, torch
         there without Triton).
+    oversample: display stack samples per display pixel along each axis (STACK_OVERSAMPLE by
+        default; 1 is faster, about 20 % per optimizer iteration, and less exact: see there).
     """
 
     def __init__(
@@ -189,6 +286,7 @@ class Renderer:
         chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
         hole_offset_mm: np.ndarray | None = None,
         backend: Backend = "auto",
+        oversample: int = STACK_OVERSAMPLE,
     ) -> None:
         self.scene = scene
         self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
@@ -197,35 +295,23 @@ class Renderer:
         self.chunk_pairs = chunk_pairs
         self.backend = backend_for(backend, self.device)
         self.optics = opt = Optics.of(scene)
-        plate, eye, display = scene.plate, scene.eye, scene.display
-
-        # Radius levels of the display window (mm on the display), uniform in radius squared;
-        # wide enough for an eye focused at infinity too (|mu| = 1), for eye states off nominal.
-        self.window_max_mm = max(abs(opt.window_scale), 1.0) * plate.max_radius_mm
-        pixel_mm = display.pixel_mm
-        levels = math.ceil(self.window_max_mm / (LEVEL_SPACING_PX * min(pixel_mm))) + 1
-        levels = min(MAX_LEVELS, max(2, levels))
-        radii = self.window_max_mm * np.sqrt(np.linspace(0, 1, levels))
-        step = eye.view_step
-        # The view pixel's box on the display, at the nominal focus (see docs/model.md); cover
-        # glass slows the window's motion by its paraxial apparent-depth loss t_g (1 - 1/n).
-        rate = opt.window_rate
-        if display.cover_glass_mm > 0:
-            rate = max(rate - display.cover_glass_mm * (1 - 1 / display.cover_glass_index), 0.0)
-        box = (rate * step[0], rate * step[1])
-        kernels = _window_kernels(pixel_mm, box, radii)
+        eye, display = scene.eye, scene.display
+        self.shape = shape = stack_shape(scene, oversample)
+        self.window_max_mm = shape.window_max_mm
+        self.oversample = oversample
+        self.kernel_size, self.pad = shape.kernel_size, shape.pad
+        self._fft_shape = (shape.fft_height, shape.fft_width)
+        radii = shape.radii_mm
+        kernels = _window_kernels(shape.pixel_mm, shape.box_mm, radii, slack_mm=shape.slack_mm)
+        self._kernel_spectrum = torch.fft.rfft2(
+            torch.as_tensor(kernels, dtype=dtype, device=self.device), s=self._fft_shape)
         # Striped RGB: each channel's kernels with its stripe's offset (built for a 3-channel
         # display only; a grey display's one channel fills the pixel).
         self._subpixel_spectrum: torch.Tensor | None = None
         offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
-        self.kernel_size = kernels.shape[-1]
-        self.pad = self.kernel_size // 2 + 1
-        ny, nx = display.pixels[1] + 2 * self.pad, display.pixels[0] + 2 * self.pad
-        self._fft_shape = (ny + self.kernel_size - 1, nx + self.kernel_size - 1)
-        k = torch.as_tensor(kernels, dtype=dtype, device=self.device)
-        self._kernel_spectrum = torch.fft.rfft2(k, s=self._fft_shape)
         if offsets_px is not None:
-            per_channel = np.stack([_window_kernels(pixel_mm, box, radii, o * pixel_mm[0])
+            per_channel = np.stack([_window_kernels(shape.pixel_mm, shape.box_mm, radii,
+                                                    o * display.pixel_mm[0], shape.slack_mm)
                                     for o in offsets_px])
             self._subpixel_spectrum = torch.fft.rfft2(
                 torch.as_tensor(per_channel, dtype=dtype, device=self.device), s=self._fft_shape)
@@ -305,7 +391,10 @@ class Renderer:
     def display_stack(self, display: torch.Tensor) -> torch.Tensor:
         """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W'). A striped
         RGB display (`Display.subpixels`) filters each channel with its stripe's offset."""
-        d = F.pad(display.to(self.device, self.dtype), (self.pad,) * 4)
+        d = display.to(self.device, self.dtype)
+        if self.oversample > 1:  # each pixel is uniform: its samples repeat its value
+            d = d.repeat_interleave(self.oversample, -1).repeat_interleave(self.oversample, -2)
+        d = F.pad(d, (self.pad,) * 4)
         spectrum = torch.fft.rfft2(d, s=self._fft_shape)  # (C, ., .)
         kernel = self._kernel_spectrum[None]
         if self.scene.display.subpixel_offsets_px(d.shape[0]) is not None:
@@ -384,7 +473,7 @@ class Renderer:
             plate.thickness_mm, float(plate.hole_axis == "chief_ray"), ex, ey,
             self.axis_length, scene.plate_distance_mm, eye.eye_relief_mm,
             scene.display_distance_mm, display.width_mm / 2, display.height_mm / 2,
-            display.pixel_mm[0], display.pixel_mm[1], self.pad,
+            self.shape.pixel_mm[0], self.shape.pixel_mm[1], self.pad,
             display.cover_glass_mm, display.cover_glass_index, display.emission_power,
         ], dtype=np.float64)
 

@@ -222,8 +222,8 @@ def display_optics_at(renderer: Renderer, wx: torch.Tensor, wy: torch.Tensor, lx
 def _normalize(renderer: Renderer, x_mm: torch.Tensor, y_mm: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
     display = renderer.scene.display
-    width = display.pixels[0] + 2 * renderer.pad
-    height = display.pixels[1] + 2 * renderer.pad
-    col = (x_mm + display.width_mm / 2) / display.pixel_mm[0] - 0.5 + renderer.pad
-    row = (display.height_mm / 2 - y_mm) / display.pixel_mm[1] - 0.5 + renderer.pad
+    shape = renderer.shape
+    col = (x_mm + display.width_mm / 2) / shape.pixel_mm[0] - 0.5 + shape.pad
+    row = (display.height_mm / 2 - y_mm) / shape.pixel_mm[1] - 0.5 + shape.pad
+    width, height = shape.width, shape.height
     return 2 * col / (width - 1) - 1, 2 * row / (height - 1) - 1

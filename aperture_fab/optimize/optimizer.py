@@ -27,7 +27,7 @@ from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
-from aperture_fab.optimize.budget import check_budget
+from aperture_fab.optimize.budget import OPTIMIZER_OVERSAMPLE, check_budget
 from aperture_fab.optimize.start import initial_state
 
 __all__ = [
@@ -303,7 +303,7 @@ def optimize(
     else:
         state = initial_state(scene, target_t.cpu().double(), shown_t.cpu().double(), settings,
                                (lo, hi), 0.0 if made is None else made.lo)
-    renderer = Renderer(scene, device=device, dtype=dtype)
+    renderer = Renderer(scene, device=device, dtype=dtype, oversample=OPTIMIZER_OVERSAMPLE)
     mask_logits = state["mask_logits"].to(device, dtype).clone().requires_grad_(True)
     params = [mask_logits]
     display_param = None
@@ -451,7 +451,7 @@ def fit_display(
     `optics`: the plate as made, one made copy drawn per iteration as in `optimize`)."""
     device = resolve_device(settings.device)
     dtype = torch_dtype(settings.precision)
-    renderer = Renderer(scene, device=device, dtype=dtype)
+    renderer = Renderer(scene, device=device, dtype=dtype, oversample=OPTIMIZER_OVERSAMPLE)
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)

@@ -103,8 +103,8 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
             shown = torch.as_tensor(display, dtype=dtype, device=device)
             stack = renderer.display_stack(shown)
             for k, draw in enumerate(draws):
-                views, _ = made_views(renderer, a, shown, states, optics, draw,
-                                      stack if draw is None or draw.offset_mm is None else None)
+                # The stack is the display's alone: every copy, moved holes or not, reads it.
+                views, _ = made_views(renderer, a, shown, states, optics, draw, stack)
                 psnr[t, k] = gain_psnr_db(views.cpu().double().numpy()[None], targets[t : t + 1])[0]
                 level[t, k] = float(views.mean())
     efficiency = float(white_transmission(renderer, a, states).mean())
