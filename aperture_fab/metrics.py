@@ -14,8 +14,8 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["METRIC_KEYS", "gain", "gain_mse", "gain_mse_states", "gain_psnr_db", "gains", "metrics",
-           "psnr_db", "summarize"]
+__all__ = ["METRIC_KEYS", "agreement_db", "gain", "gain_mse", "gain_mse_states", "gain_psnr_db",
+           "gains", "metrics", "psnr_db", "summarize"]
 
 #: The keys of a metrics dict, in the order reports list them.
 METRIC_KEYS: tuple[str, ...] = ("mse", "psnr_db", "ssim", "light_efficiency")
@@ -55,6 +55,20 @@ def gain(view: np.ndarray, target: np.ndarray) -> float:
 def psnr_db(mse: float) -> float:
     """PSNR (dB) for a peak of 1 (linear light in [0, 1])."""
     return 10 * math.log10(1 / max(mse, GAIN_EPS))
+
+
+def agreement_db(view: np.ndarray, reference: np.ndarray) -> float:
+    """How closely two calculations of one view agree: the PSNR (dB) of `view` against
+    `reference` (same shape, the same light: no gain), the reference's maximum the peak; inf
+    when they are equal."""
+    v, r = np.asarray(view, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    if v.shape != r.shape:
+        raise ValueError(f"view has shape {v.shape} but the reference has {r.shape}; they "
+                         "must match.")
+    mse, peak = float(np.mean((v - r) ** 2)), float(r.max())
+    if mse == 0:
+        return math.inf
+    return 10 * math.log10(peak**2 / mse) if peak > 0 else -math.inf
 
 
 def gains(views: np.ndarray, targets: np.ndarray) -> np.ndarray:

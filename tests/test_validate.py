@@ -13,6 +13,7 @@ from aperture_fab.cli import EXIT_OK, EXIT_REPORT_FAIL, main
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.io.images import encode_png
+from aperture_fab.metrics import agreement_db
 from aperture_fab.targets import digit
 from aperture_fab.validation.report import FIGURE_KEYS, REPORT_VARIANTS, validate_report
 from aperture_fab.validation.validate import (
@@ -113,6 +114,11 @@ def test_mesh_retrace_agrees_with_the_model_within_its_noise(validated):
         level = float(np.mean(views["quantized/t"]))
     stderr = report["mesh_retrace_stderr_rms"]
     assert np.sqrt(np.mean(diff**2)) <= 2 * stderr + MODEL_FLOOR * level
+    with np.load(validated / "views.npz") as views:
+        agreement = agreement_db(views["as_built_mesh/t"][0], views["quantized/t"][0])
+    assert report["mesh_retrace_agreement_db"] == pytest.approx(agreement, rel=1e-12)
+    assert agreement >= 35.0
+    assert f"agree at {agreement:.1f} dB" in " ".join(v["text"] for v in report["verdicts"])
     # and the page shows where they differ, in the mesh section, under its caption
     html = (validated / "report.html").read_text()
     mesh = html[html.index('<section id="mesh">'):]

@@ -21,7 +21,7 @@ from aperture_fab.fabrication.mesh import outline_points_mm
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.io.images import encode_png
-from aperture_fab.metrics import gain_psnr_db
+from aperture_fab.metrics import agreement_db, gain_psnr_db
 from aperture_fab.optics.photometry import PhotometrySettings, photometry_settings
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
@@ -164,6 +164,9 @@ def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,
                           made_part=validation.made_part)
     if validation.mesh_stderr is not None:
         report["mesh_retrace_stderr_rms"] = float(np.sqrt(np.mean(validation.mesh_stderr**2)))
+        # The first target's, as the page's disagreement map shows it.
+        report["mesh_retrace_agreement_db"] = agreement_db(
+            validation.views["as_built_mesh"][0, 0], validation.views["quantized"][0, 0])
 
     first = names[0]
     views = validation.views

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from aperture_fab.io.images import linear_to_srgb
-from aperture_fab.metrics import gain
+from aperture_fab.metrics import agreement_db, gain
 
 __all__ = ["PANEL_INCHES", "TITLE_FONT_SIZE", "figure_views", "figure_loss", "figure_histogram",
            "figure_eyebox_map", "figure_mesh_disagreement", "figure_sweep", "figure_thumbnails",
@@ -153,9 +153,7 @@ def figure_mesh_disagreement(traced: np.ndarray, exact: np.ndarray, stderr_rms: 
         raise ValueError(f"traced view has shape {mesh.shape[:2]} but the exact view has "
                          f"{model.shape[:2]}.")
     difference = (mesh - model).mean(axis=2)
-    mse = float(np.mean((mesh - model) ** 2))
-    peak = float(model.max())
-    psnr = math.inf if mse == 0 else 10 * math.log10(peak**2 / mse) if peak > 0 else -math.inf
+    psnr = agreement_db(mesh, model)
     top = float(np.abs(difference).max()) or 1.0
     fig = _figure(*PLOT_INCHES)
     ax = fig.add_subplot()

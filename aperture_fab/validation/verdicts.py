@@ -329,8 +329,10 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
     drawn, traced = _mean(report, "quantized"), _mean(report, "as_built_mesh")
     if drawn is not None and traced is not None:
         noise = report.get("mesh_retrace_stderr_rms")
+        agreement = report.get("mesh_retrace_agreement_db")
         say("mesh trace", "Traced through the written mesh (the holes as drawn), the view "
             f"scores {traced:.1f} dB ({traced - drawn:+.1f} dB from the hole layout's)"
+            + (f"; the two views agree at {agreement:.1f} dB PSNR" if agreement else "")
             + (f"; Monte Carlo noise {noise:.2g} RMS per pixel: more rays per pixel sharpen "
                "this check (--mesh-samples)." if noise else "."))
     diffracted = _mean(report, "as_built_diffraction")
