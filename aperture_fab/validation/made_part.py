@@ -84,10 +84,12 @@ class MadeQuality:
 
 def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
                displays: np.ndarray, optics: MadeOptics, states: EyeStates,
-               copies: int = MADE_COPIES, seed: int = 0) -> MadeQuality:
+               copies: int = MADE_COPIES, seed: int = 0,
+               stacks: Sequence[torch.Tensor] | None = None) -> MadeQuality:
     """Judge a plate of made open fractions (rows, cols) showing displays (T, C, H, W) for
     targets (T, C, ny, nx): `copies` made copies (the nominal one when the process has no random
-    error), each over every eye state of `states`."""
+    error), each over every eye state of `states`. stacks: the displays'
+    `renderer.display_stack`s, when the caller has them (plates that show the same content)."""
     if not (isinstance(copies, int) and copies >= 1):
         raise ValueError(f"copies = {copies!r} must be a whole number >= 1.")
     dtype, device = renderer.dtype, renderer.device
@@ -101,7 +103,7 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
     with torch.no_grad():
         for t, display in enumerate(displays):
             shown = torch.as_tensor(display, dtype=dtype, device=device)
-            stack = renderer.display_stack(shown)
+            stack = renderer.display_stack(shown) if stacks is None else stacks[t]
             for k, draw in enumerate(draws):
                 # The stack is the display's alone: every copy, moved holes or not, reads it.
                 views, _ = made_views(renderer, a, shown, states, optics, draw, stack)
@@ -214,13 +216,25 @@ def regular_front(renderer: Renderer, targets: np.ndarray, arrays: Sequence[Regu
     scene = renderer.scene
     target_t = torch.as_tensor(targets, dtype=renderer.dtype, device=renderer.device)
     eff, level, p10, p50, p90 = [], [], [], [], []
+    # Elemental images depend on the lattice alone, not the hole size: consecutive arrays of
+    # one lattice (regular_arrays' order) show the same content, whose stacks are built once
+    # and kept until the lattice changes (a fitted display is each array's own).
+    last: tuple[tuple[int, tuple[int, int]], np.ndarray, list[torch.Tensor]] | None = None
     for index, regular in enumerate(arrays):
-        displays = np.stack([elemental_display(scene, regular.array, t).cpu().double().numpy()
-                             for t in target_t])
-        if fit is not None:
-            displays = fit(regular.array.open_fraction, displays)
+        lattice = (regular.array.step_cells, regular.array.origin)
+        if fit is None and last is not None and last[0] == lattice:
+            displays, stacks = last[1], last[2]
+        else:
+            displays = np.stack([elemental_display(scene, regular.array, t).cpu().double()
+                                 .numpy() for t in target_t])
+            if fit is not None:
+                displays = fit(regular.array.open_fraction, displays)
+            with torch.no_grad():
+                stacks = [renderer.display_stack(torch.as_tensor(
+                    d, dtype=renderer.dtype, device=renderer.device)) for d in displays]
+            last = lattice, displays, stacks
         quality = judge_made(renderer, targets, regular.array.open_fraction, displays, optics,
-                             states, copies, seed)
+                             states, copies, seed, stacks)
         eff.append(quality.efficiency)
         level.append(quality.eye_level)
         p10.append(quality.percentile(10))
