@@ -18,13 +18,13 @@ from aperture_fab.measure.simulate import ScanSettings, simulate_scan
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-#: The tiny design optimized far enough that its holes matter (100 iterations: 21.4 dB; the
+#: The tiny design optimized far enough that its holes matter (100 iterations: 18.4 dB; the
 #: 8-iteration `designed` fixture's 10 dB view barely depends on its holes, and a made copy
 #: scores as often above it as below).
 ITERATIONS = "100"
 #: At the learning rate the recovery was measured with (docs/measure.md): with the default's
-#: 0.1 the same 100 iterations reach 24.0 dB and the refit recovers only 7, 36 and 18 % of
-#: these copies' loss, a gap of issue 17's goal that this test does not hide but pins apart.
+#: 0.1 the same 100 iterations reach 19.7 dB and the refit recovers 23, 65 and 67 % of these
+#: copies' loss, a gap of issue 17's goal (copy 11) that this test does not hide but pins apart.
 LEARNING_RATE = "0.05"
 #: Made copies of its photomask plate: radius sigma 3 um (the process's 2 um, worse), position
 #: sigma 5 um (the process's), no bias (the process's, compensated in the drawing), three holes
@@ -65,6 +65,10 @@ def test_the_refit_recovers_at_least_half_the_tolerance_loss(
           f"nominal refit {figures['nominal_refit_psnr_db']:.2f} dB, "
           f"recovered {figures['recovered_share']}")
     assert figures["tolerance_loss_db"] > 0  # these copies lose against the design
+    # The fit optimizes the model it is judged by, from the design's content: the nominal
+    # plate's refit does not judge worse than the design (fitted at one sample per pixel and
+    # the full learning rate it did, by 0.11 dB on the lr 0.1 design).
+    assert figures["nominal_refit_psnr_db"] >= figures["nominal_psnr_db"]
     assert figures["recovered_share"] >= GOAL_SHARE
     assert (made / "refit_display_marker.png").is_file()
     check_folder(made)  # the figures joined the measured set

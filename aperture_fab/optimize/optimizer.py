@@ -443,15 +443,17 @@ def fit_display(
     iterations: int,
     *,
     optics: MadeOptics | None = None,
+    oversample: int = OPTIMIZER_OVERSAMPLE,
     progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Re-fit the display content (T, C, H, W) to a fixed plate, e.g. the part as built, from
     `displays`; the plate is hardware, the display content software. Returns the displays and
     the loss history. Adam with the settings' learning rate and schedule, the same loss (with
-    `optics`: the plate as made, one made copy drawn per iteration as in `optimize`)."""
+    `optics`: the plate as made, one made copy drawn per iteration as in `optimize`), its
+    display stack sampled `oversample` times per pixel (the optimizer's, by default)."""
     device = resolve_device(settings.device)
     dtype = torch_dtype(settings.precision)
-    renderer = Renderer(scene, device=device, dtype=dtype, oversample=OPTIMIZER_OVERSAMPLE)
+    renderer = Renderer(scene, device=device, dtype=dtype, oversample=oversample)
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
