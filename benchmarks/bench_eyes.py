@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.io.images import resample
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes

@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.metrics import gain_psnr_db
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
@@ -51,7 +50,7 @@ def measure(name: str, errors_mm: Sequence[float], states: int, iterations: int 
             ) -> dict[str, Any]:
     overrides = {} if iterations is None else {"optimizer.iterations": iterations}
     config = resolve("near-eye", None, overrides)
-    fabrication = fabrication_settings(config.extra, {})
+    fabrication = config.fabrication
     result = design([EXAMPLES[name]()], config, names=[name], fabrication=fabrication)
     assert result.part is not None
     shown = result.design.displays if result.built_displays is None else result.built_displays

@@ -26,12 +26,12 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.config.stages import FabricationSettings, PhotometrySettings
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
-from aperture_fab.optics.photometry import PhotometrySettings, light_budget
+from aperture_fab.optics.photometry import light_budget
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.robustness import Variant, judge_eyes

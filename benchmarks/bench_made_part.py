@@ -46,18 +46,14 @@ from typing import Any
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import fabrication_settings
+from aperture_fab.config.stages import ValidationSettings
 from aperture_fab.metrics import psnr_db
-from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2, photometry_settings
+from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.part_figures import figure_made_front
-from aperture_fab.validation.validate import (
-    ValidationSettings,
-    layout_fractions,
-    tolerance_analysis,
-)
+from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")
 QUICK = {"targets": ["digit-3"], "iterations": 10, "states": 8, "copies": 2,
@@ -85,8 +81,8 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if args.iterations is not None:
         overrides["optimizer.iterations"] = args.iterations
     config = resolve(args.preset, None, overrides)
-    panel_cd_m2 = photometry_settings(config.extra).panel_luminance_cd_m2
-    fabrication = fabrication_settings(config.extra, {"process": args.process})
+    panel_cd_m2 = config.photometry.panel_luminance_cd_m2
+    fabrication = config.fabrication.with_flags(process=args.process)
     scene, process = config.scene, fabrication.process
     start = time.perf_counter()
     result = design([EXAMPLES[name]()], config, names=[name], fabrication=fabrication)

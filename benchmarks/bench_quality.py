@@ -31,7 +31,7 @@ from typing import Any
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.device import resolve_device

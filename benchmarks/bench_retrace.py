@@ -51,7 +51,7 @@ import torch
 from aperture_fab.config.config import resolve
 from aperture_fab.config.presets import DEFAULT_PRESET
 from aperture_fab.fabrication.mesh import PlateMesh
-from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
+from aperture_fab.fabrication.part import design_bounds, make_part
 from aperture_fab.io.formats import read_stl, stl_bytes
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.model import Renderer
@@ -67,10 +67,10 @@ def default_case(seed: int, target: str) -> tuple[Scene, PlateMesh, np.ndarray, 
     """(scene, mesh read back from STL, display (C, H, W), exact model view (C, ny, nx))."""
     config = resolve(DEFAULT_PRESET)
     scene = config.scene
-    process = fabrication_settings(config.extra).process
+    process = config.fabrication.process
     low, high = design_bounds(scene, process)
     fractions = np.random.default_rng(seed).uniform(low, high, scene.plate.cells[::-1])
-    part = make_part(fractions, scene, fabrication_settings(config.extra))
+    part = make_part(fractions, scene, config.fabrication)
     _, on_display = prepare_targets([EXAMPLES[target]()], scene.eye.view_pixels,
                                     scene.display.pixels)
     display = on_display[0]

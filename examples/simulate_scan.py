@@ -18,7 +18,6 @@ from pathlib import Path
 
 import png
 
-from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.measure.job import read_design_coupon, read_design_part
 from aperture_fab.measure.simulate import ScanSettings, simulate_scan
 from aperture_fab.pipeline.saved import CONFIG_NAME, read_config
@@ -54,7 +53,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     config = read_config(args.design / CONFIG_NAME)
-    process = fabrication_settings(config.extra, {}).process
+    process = config.fabrication.process
     part = read_design_coupon(args.design)[1] if args.coupon else read_design_part(args.design)
     smallest_r = process.min_hole_for(config.scene.plate.thickness_mm) / 2
 

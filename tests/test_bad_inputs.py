@@ -1171,7 +1171,7 @@ CONFIG_FILES: list[Case] = [
     Case("config missing", ["design", "{d}/marker.png", "--config", "{d}/none.toml", "--out",
                             "{d}/run"], bad("--config {d}/none.toml: cannot read it")),
     Case("[validation] unknown key", DESIGN_BAD_VALIDATED,
-         bad("[validation] has unknown keys ['bogus']"), _config("[validation]\nbogus = 1\n")),
+         bad("[validation] has unknown key(s) ['bogus']"), _config("[validation]\nbogus = 1\n")),
     Case("[validation] huge tolerance_samples", DESIGN_BAD_VALIDATED,
          bad("validation.tolerance_samples = 1000000000 is out of range; allowed: 0 to"),
          _config("[validation]\ntolerance_samples = 1000000000\n")),

@@ -10,7 +10,7 @@ from conftest import tiny_config
 
 from aperture_fab.config import resolve
 from aperture_fab.config.presets import LIGHT_FLOOR
-from aperture_fab.fabrication.part import FabricationSettings
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open

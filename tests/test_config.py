@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import difflib
 import itertools
 import json
 import math
@@ -25,7 +24,14 @@ from aperture_fab.config.presets import (
     preset_summary,
 )
 from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.config.stages import (
+    UNNAMED_PROCESS,
+    FabricationSettings,
+    PhotometrySettings,
+    ValidationSettings,
+)
 from aperture_fab.config.written import to_dict, to_toml
+from aperture_fab.fabrication.process import PROCESSES, resolve_process
 from aperture_fab.optics.scene import Display, Eye, Plate
 
 
@@ -49,7 +55,9 @@ def test_every_preset_resolves_and_gives_every_key(name: str) -> None:
     assert config.preset == name
     assert isinstance(config.optimizer, OptimizerSettings)
     # the near-eye presets name their process (photomask film); the seed keeps the default
-    assert config.extra == ({} if name == "seed" else {"process": {"name": DEFAULT_PROCESS}})
+    assert config.fabrication == FabricationSettings(
+        PROCESSES[UNNAMED_PROCESS if name == "seed" else DEFAULT_PROCESS])
+    assert (config.validation, config.photometry) == (ValidationSettings(), PhotometrySettings())
     assert name in PRESET_DESCRIPTIONS
 
 
@@ -119,7 +127,7 @@ def test_preset_summary_rejects_unknown_name() -> None:
 
 def test_resolve_does_not_change_the_presets() -> None:
     before = copy.deepcopy(PRESETS)
-    config = resolve(file_dict={"plate": {"gap_mm": 12.0}, "process": {"a": [1]}},
+    config = resolve(file_dict={"plate": {"gap_mm": 12.0}, "process": {"hole_sizes_mm": [0.4]}},
                      overrides={"eye.positions_mm": [[1, 2], [3, 4]]})
     assert config.scene.plate.gap_mm == 12.0
     assert PRESETS == before
@@ -141,9 +149,10 @@ def test_to_toml_layout(name: str) -> None:
     # The checkpoint's config digest hashes this text, so its layout is held (a change would
     # make checkpoints written before it refuse --resume): the header line; each key = value on
     # one line, arrays inline; a blank line before each [table]; one newline at the end.
-    extra = {"process": {"name": "sla", "sizes": [0.1, 0.2], "note": 'a "b"\n'},
-             "validation": {"limit": 1, "views": {"diffraction": True}}}
-    config = resolve(name, file_dict=extra)
+    tables = {"process": {"name": "photomask", "hole_sizes_mm": [0.1, 0.2],
+                          "optical_density_note": 'a "b"\n'},
+              "validation": {"tolerance_samples": 1, "diffraction": False}}
+    config = resolve(name, file_dict=tables)
     text = to_toml(config)
     lines = text.split("\n")
     assert lines[0].startswith("# aperture-fab configuration, fully resolved")
@@ -153,8 +162,8 @@ def test_to_toml_layout(name: str) -> None:
             assert before == "" and line.endswith("]"), line
         else:
             assert line == "" or re.fullmatch(r"[A-Za-z0-9_]+ = [^\[{].*|\S+ = \[.*\]", line), line
-    assert "\n\n[validation.views]\ndiffraction = true\n" in text
-    assert 'note = "a \\"b\\"\\n"\n' in text
+    assert "\n\n[validation]\ntolerance_samples = 1\ndiffraction = false\n" in text
+    assert 'optical_density_note = "a \\"b\\"\\n"\n' in text
     eye = config.scene.eye
     assert f"view_pixels = [{eye.view_pixels[0]}, {eye.view_pixels[1]}]\n" in text
     if config.fov_from_display:
@@ -203,27 +212,48 @@ def test_round_trip_with_random_overrides(name: str, overrides: dict[str, Any]) 
     assert round_trip(config) == config
 
 
-# Top-level names for extra sections: not a known section nor close enough to pass for a typo.
-section_name = st.from_regex(r"[a-z]{3,10}", fullmatch=True).filter(
-    lambda n: n != "preset"
-    and not difflib.get_close_matches(n, list(SECTION_KEYS), n=1, cutoff=0.8))
-scalar = st.one_of(st.booleans(), st.integers(-(2**63), 2**63 - 1), st.text(),
-                   st.floats(allow_nan=False))
-toml_value = st.recursive(
-    scalar,
-    lambda inner: st.one_of(st.lists(inner, max_size=3),
-                            st.dictionaries(st.text(max_size=8), inner, max_size=3)),
-    max_leaves=10,
-)
+# Stage tables of random valid values: each round-trips through the written TOML.
+stage_tables = st.fixed_dictionaries({}, optional={
+    "validation": st.fixed_dictionaries({}, optional={
+        "tolerance_samples": st.integers(0, 100), "gap_sigma_mm": st.floats(0, 1),
+        "threshold_db": st.floats(-10, 60), "mesh_samples": st.integers(0, 64),
+        "diffraction": st.booleans()}),
+    "photometry": st.fixed_dictionaries({}, optional={
+        "panel_luminance_cd_m2": st.floats(1, 5000), "observer_age_years": st.floats(20, 83),
+        "adapted_eyes": st.sampled_from([1, 2])}),
+    "process": st.fixed_dictionaries({"name": st.sampled_from(sorted(PROCESSES))}, optional={
+        "radius_sigma_mm": st.floats(0, 0.01), "optical_density": st.floats(0.1, 6)}),
+    "fabrication": st.fixed_dictionaries({}, optional={
+        "force": st.booleans(), "step": st.booleans(),
+        "svg_polarity": st.sampled_from(["holes_black", "holes_white"])}),
+    "part": st.fixed_dictionaries({"outline_mm": st.tuples(st.floats(1, 99), st.floats(1, 99))}),
+})
 
 
 @settings(max_examples=60, deadline=None)
-@given(extra=st.dictionaries(section_name, st.dictionaries(st.text(max_size=8), toml_value,
-                                                           max_size=4), max_size=3))
-def test_extra_sections_survive_the_round_trip(extra: dict[str, Any]) -> None:
-    config = resolve(file_dict=extra)
-    assert to_dict(config) == {**to_dict(resolve()), **extra}
+@given(tables=stage_tables)
+def test_stage_tables_are_typed_and_survive_the_round_trip(tables: dict[str, Any]) -> None:
+    config = resolve(file_dict=tables)
+    for key, value in tables.get("validation", {}).items():
+        assert getattr(config.validation, key) == value
+    for key, value in tables.get("photometry", {}).items():
+        assert getattr(config.photometry, key) == value
+    process = tables.get("process", {"name": DEFAULT_PROCESS})
+    assert config.fabrication.process == resolve_process(
+        process["name"], {k: v for k, v in process.items() if k != "name"})
+    for key, value in tables.get("fabrication", {}).items():
+        assert getattr(config.fabrication, key) == value
+    assert config.part_outline_mm == tables.get("part", {}).get("outline_mm")
     assert round_trip(config) == config
+
+
+def test_unknown_or_misspelt_tables_are_refused() -> None:
+    with pytest.raises(ValueError, match=r"unknown table\(s\) \[report\].*\[validation\]"):
+        resolve(file_dict={"report": {"title": "x"}})
+    with pytest.raises(ValueError, match=r"\[validaton\].*Did you mean \[validation\]"):
+        resolve(file_dict={"validaton": {"seed": 1}})
+    with pytest.raises(ValueError, match=r"\[fabrication\] has unknown key\(s\) \['forse'\]"):
+        resolve(file_dict={"fabrication": {"forse": True}})
 
 
 # --- layering ---------------------------------------------------------------------------------
@@ -292,16 +322,24 @@ def test_new_positions_get_equal_weights_unless_weights_given() -> None:
         resolve(file_dict={"eye": {"positions_mm": positions, "weights": [2, 1]}})
 
 
-def test_extra_sections_are_kept_read_only_and_overridable() -> None:
-    file = parse_toml('[process]\nname = "sla"\nsizes = [0.1, 0.2]\n[validation.views]\n'
-                      'diffraction = true\n', "p.toml")
-    config = resolve(file_dict=file, overrides={"process.min_hole_mm": 0.08})
-    assert config.extra["process"] == {"name": "sla", "sizes": (0.1, 0.2), "min_hole_mm": 0.08}
-    assert config.extra["validation"]["views"]["diffraction"] is True
-    with pytest.raises(TypeError):
-        config.extra["process"]["name"] = "fdm"
-    assert to_dict(config)["process"]["sizes"] == [0.1, 0.2]
+def test_stage_tables_are_overridable_and_flags_retarget_the_process() -> None:
+    file = parse_toml('[process]\nname = "fdm"\nhole_sizes_mm = [0.4, 0.6]\n[validation]\n'
+                      'diffraction = false\n', "p.toml")
+    config = resolve(file_dict=file, overrides={"process.min_hole_mm": 0.5,
+                                                "validation.tolerance_samples": 4})
+    process = config.fabrication.process
+    assert (process.name, process.hole_sizes_mm, process.min_hole_mm) == ("fdm", (0.4, 0.6), 0.5)
+    assert (config.validation.diffraction, config.validation.tolerance_samples) == (False, 4)
+    written = to_dict(config)
+    assert written["process"] == {"name": "fdm", "min_hole_mm": 0.5, "hole_sizes_mm": [0.4, 0.6]}
+    assert written["validation"] == {"tolerance_samples": 4, "diffraction": False}
+    assert "photometry" not in written  # the defaults, left out
     assert round_trip(config) == config
+    # --process names another process, with the fields this config changes applied to it
+    laser = config.fabrication.with_flags(process="laser", force=True)
+    assert laser.process == resolve_process("laser", {"min_hole_mm": 0.5,
+                                                      "hole_sizes_mm": [0.4, 0.6]})
+    assert laser.force and not config.fabrication.force
 
 
 # --- errors -----------------------------------------------------------------------------------

@@ -307,11 +307,11 @@ def test_the_readme_config_block_resolves() -> None:
     """The README's TOML block (the workspace's my.toml) is a valid config, its [process]
     table included (read when the part is made)."""
     from aperture_fab.config.config import parse_toml, resolve
-    from aperture_fab.fabrication.part import fabrication_settings
+
 
     config = resolve(None, parse_toml(readme_config(), "README.md"))
     assert config.scene.plate.cells == (80, 80)
-    assert fabrication_settings(config.extra, {}).process.name == "photomask"
+    assert config.fabrication.process.name == "photomask"
 
 
 def readme_python(first_line: str) -> str:

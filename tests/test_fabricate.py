@@ -11,8 +11,9 @@ import pytest
 
 from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_REPORT_FAIL, main
 from aperture_fab.config.config import resolve
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.mesh_checks import check_mesh, mesh_volume_mm3
-from aperture_fab.fabrication.part import design_bounds, fabrication_settings, make_part
+from aperture_fab.fabrication.part import design_bounds, make_part
 from aperture_fab.fabrication.process import PROCESSES, UnmakeableError, resolve_process
 from aperture_fab.io.formats import read_stl
 from aperture_fab.io.images import encode_png
@@ -41,7 +42,7 @@ def test_make_part_builds_a_checked_solid(axis):
     config = tiny_config(**{"plate.hole_axis": axis})
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 0.4, (16, 16))
-    settings = fabrication_settings({"process": {"name": "photomask"}})
+    settings = FabricationSettings(resolve_process("photomask"))
     part = make_part(a, config.scene, settings)
     report = check_mesh(part.mesh)
     assert report.watertight and report.consistently_oriented and report.bodies == 1
@@ -113,11 +114,11 @@ def test_export_of_a_missing_design_is_a_clear_error(tmp_path, capsys):
 
 def test_unknown_process_and_bad_thickness_are_clear_errors():
     with pytest.raises(ValueError, match="resin"):
-        fabrication_settings({}, {"process": "resn"})
+        FabricationSettings().with_flags(process="resn")
     config = tiny_config(**{"plate.thickness_mm": 20.0})
     with pytest.raises(UnmakeableError, match="thickness"):
         make_part(np.full((16, 16), 0.2), config.scene,
-                  fabrication_settings({}, {"process": "photomask"}))
+                  FabricationSettings().with_flags(process="photomask"))
 
 
 def test_pitch_too_small_names_what_would_work():
@@ -125,5 +126,5 @@ def test_pitch_too_small_names_what_would_work():
     process = resolve_process("laser")
     with pytest.raises(UnmakeableError) as err:
         make_part(np.full((16, 16), 0.2), config.scene,
-                  fabrication_settings({"process": {"name": process.name}}))
+                  FabricationSettings(process))
     assert "pitch" in str(err.value)

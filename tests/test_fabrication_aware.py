@@ -15,13 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aperture_fab.config.config import Config
-from aperture_fab.fabrication.part import (
-    FabricationSettings,
-    design_bounds,
-    drawn_fractions,
-    made_optics,
-    make_part,
-)
+from aperture_fab.config.stages import FabricationSettings
+from aperture_fab.fabrication.part import design_bounds, drawn_fractions, made_optics, make_part
 from aperture_fab.fabrication.process import PROCESSES, resolve_process
 from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
 from aperture_fab.io.images import resample

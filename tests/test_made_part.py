@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import FabricationSettings, made_optics
+from aperture_fab.config.stages import FabricationSettings
+from aperture_fab.fabrication.part import made_optics
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.io.formats import holes_csv, read_holes_csv

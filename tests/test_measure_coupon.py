@@ -14,7 +14,6 @@ from test_measure_judge import write_scan
 
 from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_OK, main
 from aperture_fab.config.config import parse_toml, resolve
-from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.measure.job import read_design_coupon
 from aperture_fab.measure.simulate import ScanSettings, SimulatedScan, simulate_scan
 
@@ -70,7 +69,7 @@ def test_measure_coupon_writes_the_process_that_design_takes(
     assert opened == [int(n) for n in (~scan.truth.blocked).reshape(len(opened), -1).sum(1)]
     # design --config takes it: the process as measured, the rest the design's config.
     config = resolve(None, parse_toml((out / "process.toml").read_text(), "process.toml"))
-    made = fabrication_settings(config.extra, {}).process
+    made = config.fabrication.process
     assert made.radius_bias_mm == process["radius_bias_mm"]
     assert made.min_hole_for(config.scene.plate.thickness_mm) == process["min_hole_mm"]
     redesign = tmp_path / "redesign"

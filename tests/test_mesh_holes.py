@@ -13,10 +13,11 @@ import pytest
 from hypothesis import given, reject, settings
 from hypothesis import strategies as st
 
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, segment_count
 from aperture_fab.fabrication.mesh_holes import hole_layout_from_mesh, mesh_hole_loops
-from aperture_fab.fabrication.part import FabricationSettings, Part, make_part
+from aperture_fab.fabrication.part import Part, make_part
 from aperture_fab.fabrication.process import PROCESSES, UnmakeableError
 from aperture_fab.io.formats import read_stl, stl_bytes
 from aperture_fab.optics.scene import Display, Eye, Plate, Scene

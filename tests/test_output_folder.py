@@ -309,14 +309,14 @@ CHILD = """\
 import sys, time
 from pathlib import Path
 from aperture_fab.config.config import parse_toml, resolve
-from aperture_fab.fabrication.part import fabrication_settings
+
 from aperture_fab.pipeline.design_job import run_design
 
 folder = Path(sys.argv[1])
 config = resolve(None, parse_toml((folder / "tiny.toml").read_text(), "tiny.toml"),
                  {{"optimizer.iterations": 3, "optimizer.seed": 11}})
 run_design([folder / "marker.png"], folder, config,
-           fabrication=fabrication_settings(config.extra), progress=False,
+           fabrication=config.fabrication, progress=False,
            on_staged=lambda stage: time.sleep({pause}))
 """
 

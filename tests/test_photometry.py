@@ -9,13 +9,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from aperture_fab.config.stages import PhotometrySettings, read_tables
 from aperture_fab.optics.photometry import (
     MESOPIC_LOWER_CD_M2,
     MESOPIC_UPPER_CD_M2,
     REFERENCE_AGE_YEARS,
-    PhotometrySettings,
     light_budget,
-    photometry_settings,
     pupil_diameter_mm,
     regime,
     trolands,
@@ -91,7 +90,7 @@ def test_trolands_are_luminance_times_pupil_area() -> None:
 ])
 def test_bad_settings_are_refused(table: dict, fragment: str) -> None:
     with pytest.raises(ValueError) as info:
-        photometry_settings({"photometry": table})
+        read_tables({"photometry": table})
     assert fragment in str(info.value)
 
 

@@ -7,16 +7,16 @@ import copy
 import dataclasses
 import json
 import math
-from types import MappingProxyType, SimpleNamespace
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 from conftest import tiny_config
 
+from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.fabrication.process import PROCESSES, Process, process_summary, resolve_process
 from aperture_fab.io.images import encode_png
-from aperture_fab.optics.photometry import PhotometrySettings
 from aperture_fab.validation.evidence import light_block, run_block
 from aperture_fab.validation.formatting import config_rows, label, percent, quantity, sig
 from aperture_fab.validation.light import (
@@ -218,7 +218,7 @@ def test_the_verdicts_judge_tolerance_light_and_contrast() -> None:
     assert overall_level(list(found.values())) == "fail"
 
 
-def test_light_block_falls_back_to_defaults_on_a_bad_photometry_table() -> None:
+def test_light_block_uses_the_configs_photometry() -> None:
     config = tiny_config()
     validation = SimpleNamespace(metrics={"as_built": {"a": {"light_efficiency": 0.002}}})
     displays = np.full((1, 3, 4, 4), 0.5)
@@ -226,12 +226,7 @@ def test_light_block_falls_back_to_defaults_on_a_bad_photometry_table() -> None:
     good = light_block(config, validation, displays, process, 0.1)  # type: ignore[arg-type]
     assert good is not None and good["panel_luminance_cd_m2"] == 500.0
     assert good["leakage"]["optical_density"] == 6.0
-    bad = dataclasses.replace(config, extra=MappingProxyType(
-        {**config.extra, "photometry": {"panel_luminance_cd_m2": -1}}))
-    fallback = light_block(bad, validation, displays, process, 0.1)  # type: ignore[arg-type]
-    assert fallback is not None and "panel_luminance_cd_m2" in fallback["warnings"][0]
-    bright = dataclasses.replace(config, extra=MappingProxyType(
-        {**config.extra, "photometry": {"panel_luminance_cd_m2": 2000.0}}))
+    bright = dataclasses.replace(config, photometry=PhotometrySettings(2000.0))
     lit = light_block(bright, validation, displays, process, 0.1)  # type: ignore[arg-type]
     assert lit is not None and lit["view_luminance_cd_m2"] == pytest.approx(
         2000 * 0.5 * 0.002)

@@ -20,7 +20,6 @@ from PIL import Image
 from aperture_fab.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REPORT_FAIL, main
 from aperture_fab.config.config import parse_toml, resolve
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.part import fabrication_settings
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.fabrication.rules import layout_violations
 from aperture_fab.io.formats import holes_csv, read_holes_csv
@@ -293,8 +292,8 @@ def test_render_matches_the_renderer_and_the_png(copy: Path,
     assert main(["render", str(copy / "holes.csv"), "--out", str(out)]) == 0
     assert "light efficiency" in capsys.readouterr().out
     config = resolve(None, parse_toml((copy / "design.toml").read_text(), "design.toml"))
-    process = fabrication_settings(config.extra).process
-    layout = load_part(copy / "holes.csv", "holes", config, fabrication_settings(config.extra),
+    process = config.fabrication.process
+    layout = load_part(copy / "holes.csv", "holes", config, config.fabrication,
                        copy / "design.toml").layout
     display = read_design(copy / "design.npz").built_displays
     assert display is not None

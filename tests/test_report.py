@@ -21,9 +21,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
+from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.config.written import to_dict
 from aperture_fab.metrics import METRIC_KEYS
-from aperture_fab.optics.photometry import PhotometrySettings
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,

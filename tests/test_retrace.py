@@ -15,10 +15,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh, build_mesh, outline_points_mm
 from aperture_fab.fabrication.mesh_holes import mesh_hole_loops
-from aperture_fab.fabrication.part import FabricationSettings, Part, design_bounds, make_part
+from aperture_fab.fabrication.part import Part, design_bounds, make_part
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.formats import read_stl, stl_bytes

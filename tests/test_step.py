@@ -376,8 +376,9 @@ def test_cad_mount_frame_volume_and_placement(tmp_path: Path) -> None:
 def test_part_files_step_carries_the_parts_chamfer() -> None:
     # The STEP part must match the mesh (and DXF/SVG) outline: the same chamfer, same volume.
     from aperture_fab.config.config import resolve
+    from aperture_fab.config.stages import FabricationSettings
     from aperture_fab.fabrication.mesh_checks import mesh_volume_mm3
-    from aperture_fab.fabrication.part import fabrication_settings, make_part
+    from aperture_fab.fabrication.part import make_part
     from aperture_fab.io.formats import part_files
 
     config = resolve("near-eye-nominal", overrides={
@@ -385,7 +386,7 @@ def test_part_files_step_carries_the_parts_chamfer() -> None:
         "plate.cells": [16, 16], "plate.pitch_mm": [0.25, 0.25], "eye.view_pixels": [12, 12],
         "plate.thickness_mm": 0.3, "plate.hole_axis": "chief_ray",
     })
-    settings = fabrication_settings({"process": {"name": "resin"}})
+    settings = FabricationSettings()  # resin
     fractions = np.random.default_rng(3).uniform(0.0, 0.5, size=(16, 16))
     part = make_part(fractions, config.scene, settings)
     assert part.corner_cut_mm > 0

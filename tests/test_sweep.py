@@ -174,7 +174,7 @@ BAD_VALUES = [
     ('"plate.gap_mm" = [8.0, "wide"]', ["[grid] plate.gap_mm = wide", "8.0, wide",
                                         "a number"]),
     ('"process.name" = ["resin", "wood"]', ["process.name = wood", "resin, fdm, laser"]),
-    ('"validation.tolerance_sample" = [2]', ["validation.tolerance_sample", "unknown keys"]),
+    ('"validation.tolerance_sample" = [2]', ["validation.tolerance_sample", "unknown key(s)"]),
 ]
 
 

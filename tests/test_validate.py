@@ -10,6 +10,12 @@ import numpy as np
 import pytest
 
 from aperture_fab.cli import EXIT_OK, EXIT_REPORT_FAIL, main
+from aperture_fab.config.stages import (
+    MAX_TILT_SIGMA_DEG,
+    YIELD_MARGIN_DB,
+    ValidationSettings,
+    read_tables,
+)
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.io.images import encode_png
@@ -17,14 +23,10 @@ from aperture_fab.metrics import agreement_db
 from aperture_fab.targets import digit
 from aperture_fab.validation.report import FIGURE_KEYS, REPORT_VARIANTS, validate_report
 from aperture_fab.validation.validate import (
-    MAX_TILT_SIGMA_DEG,
-    YIELD_MARGIN_DB,
-    ValidationSettings,
     _tilt_offsets_mm,
     layout_fractions,
     scaled_field_deg,
     tolerance_analysis,
-    validation_settings,
 )
 
 
@@ -49,10 +51,11 @@ def test_validation_settings_are_checked():
     for tilt in (-0.1, MAX_TILT_SIGMA_DEG + 0.1, math.nan, math.inf):
         with pytest.raises(ValueError, match="tilt_sigma_deg"):
             ValidationSettings(tilt_sigma_deg=tilt)
-    assert validation_settings({"validation": {"tilt_sigma_deg": 1.5}}).tilt_sigma_deg == 1.5
-    with pytest.raises(ValueError, match="unknown keys"):
-        validation_settings({"validation": {"samples": 3}})
-    assert validation_settings({}, {"mesh_samples": 8, "tolerance_samples": None}).mesh_samples == 8
+    assert read_tables({"validation": {"tilt_sigma_deg": 1.5}})[1].tilt_sigma_deg == 1.5
+    with pytest.raises(ValueError, match="unknown key"):
+        read_tables({"validation": {"samples": 3}})
+    flagged = ValidationSettings().with_flags(mesh_samples=8, tolerance_samples=None)
+    assert (flagged.mesh_samples, flagged.tolerance_samples) == (8, 16)
 
 
 @pytest.fixture(scope="module")

@@ -56,7 +56,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     named = part_format_of(args.out, PART_FILE_SUFFIXES)
     open_fraction, config = read_export_inputs(args.design, config_path, args.preset)
     # The process design.toml records, or --process.
-    fabrication = fabrication_of(args, config.extra)
+    fabrication = fabrication_of(args, config)
     if not fabrication.force:
         refuse_unmakeable_export(args, config, fabrication, config_path)
     exported = run_export(open_fraction, config, fabrication, args.out, named,
@@ -72,15 +72,13 @@ def cmd_design(args: argparse.Namespace) -> int:
     from aperture_fab.io.files import output_folder
     from aperture_fab.optimize.optimizer import Interrupted
     from aperture_fab.pipeline.design_job import run_design
-    from aperture_fab.validation.validate import validation_settings
 
     config = load_config(args)
-    fabrication = fabrication_of(args, config.extra)
+    fabrication = fabrication_of(args, config)
     if not fabrication.force:  # refused before any work, with the flags that make it possible
         refuse_unmakeable(fabrication.process, config.scene, args.command_line)
-    validation = None if args.no_validate else validation_settings(
-        config.extra, {"tolerance_samples": args.tolerance_samples,
-                       "mesh_samples": args.mesh_samples})
+    validation = None if args.no_validate else config.validation.with_flags(
+        tolerance_samples=args.tolerance_samples, mesh_samples=args.mesh_samples)
     from aperture_fab.io.formats import PART_SUFFIXES
     from aperture_fab.pipeline.export_job import part_format_of
 

@@ -159,11 +159,9 @@ def add_strict_flag(parser: Any) -> None:
                         "way")
 
 
-def fabrication_of(args: argparse.Namespace, extra: Any) -> Any:
-    from aperture_fab.fabrication.part import fabrication_settings
-
-    return fabrication_settings(extra, {"process": args.process, "force": args.force,
-                                        "step": args.step})
+def fabrication_of(args: argparse.Namespace, config: Any) -> Any:
+    """The config's fabrication settings with the flags --process, --force and --step."""
+    return config.fabrication.with_flags(args.process, args.force, args.step)
 
 
 def _makeable_flags(process: Any, scene: Any) -> tuple[list[str], str]:

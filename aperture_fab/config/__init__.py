@@ -6,6 +6,8 @@ of the stages that are not the scene.
 """
 
 from aperture_fab.config.config import SECTION_KEYS, Config, parse_toml, resolve
+from aperture_fab.config.stages import FabricationSettings, PhotometrySettings, ValidationSettings
 from aperture_fab.config.written import to_dict, to_toml
 
-__all__ = ["SECTION_KEYS", "Config", "parse_toml", "resolve", "to_dict", "to_toml"]
+__all__ = ["SECTION_KEYS", "Config", "FabricationSettings", "PhotometrySettings",
+           "ValidationSettings", "parse_toml", "resolve", "to_dict", "to_toml"]

@@ -26,8 +26,9 @@ state only. A nominal pupil_mm or focus_mm set in a higher layer than its range,
 that range, pins it: the range becomes "nominal" (e.g. --pupil-mm 8 over the near-eye preset's
 3 to 6 mm designs for an 8 mm pupil; --focus-mm 500 for 500 mm). Set both to spread around it.
 
-Other top-level tables (e.g. [process], [validation]) belong to other stages: they are kept as
-they are in `Config.extra`. Unknown keys inside the four sections above are errors.
+The later stages' tables ([process], [fabrication], [validation], [photometry], [part]) are
+read into typed settings too (`aperture_fab.config.stages`). Unknown keys, sections and tables
+are errors.
 
 This module reads and writes text only; the CLI reads and writes the files.
 """
@@ -40,7 +41,6 @@ import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from types import MappingProxyType
 from typing import Any
 
 import tomlkit
@@ -54,6 +54,12 @@ from aperture_fab.config.settings import (
     SCHEDULES,
     TRACKINGS,
     OptimizerSettings,
+)
+from aperture_fab.config.stages import (
+    FabricationSettings,
+    PhotometrySettings,
+    ValidationSettings,
+    read_tables,
 )
 from aperture_fab.optics.eye_fields import EYEBOX_SHAPES
 from aperture_fab.optics.scene import (
@@ -138,8 +144,10 @@ class Config:
     preset: name of the preset the values started from.
     scene: display, plate and eye (field of view in explicit degrees).
     optimizer: optimizer settings.
-    extra: other top-level tables (e.g. "process", "validation"), read-only, kept for the
-        stages that own them; nested tables are read-only mappings and arrays are tuples.
+    fabrication: how the part is made ([process], [fabrication]).
+    validation: how much validation to do ([validation]).
+    photometry: the panel and the observer ([photometry]).
+    part_outline_mm: the plate outline (width, height) a design recorded ([part]), or None.
     fov_from_display: whether scene.eye.fov_deg was derived from the geometry
         (`fov_deg = "display"`) rather than set; a written config then says "display", so a
         rerun with another gap or eyebox derives the field again instead of freezing this one.
@@ -148,7 +156,10 @@ class Config:
     preset: str
     scene: Scene
     optimizer: OptimizerSettings
-    extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    fabrication: FabricationSettings = field(default_factory=FabricationSettings)
+    validation: ValidationSettings = field(default_factory=ValidationSettings)
+    photometry: PhotometrySettings = field(default_factory=PhotometrySettings)
+    part_outline_mm: tuple[float, float] | None = None
     fov_from_display: bool = False
 
 
@@ -178,7 +189,7 @@ class _Layers:
     def __init__(self) -> None:
         self.values: dict[str, Any] = {}
         self.sources: dict[str, tuple[int, str]] = {}
-        self.extra: dict[str, Any] = {}
+        self.tables: dict[str, Any] = {}  # the stage tables, merged (config.stages)
 
     def set(self, key: str, value: Any, rank: int, label: str) -> None:
         self.values[key] = value
@@ -215,7 +226,7 @@ def _check_section_name(name: str, label: str) -> None:
     if close:
         raise ValueError(
             f"Unknown section [{name}] ({label}); did you mean [{close[0]}]? Known sections: "
-            f"{', '.join(SECTION_KEYS)}; other tables are kept for other stages."
+            f"{', '.join(SECTION_KEYS)}, and the stage tables (aperture_fab.config.stages)."
         )
 
 
@@ -225,7 +236,7 @@ def _merge(into: dict[str, Any], new: Mapping[str, Any]) -> None:
         if isinstance(value, Mapping) and isinstance(into.get(key), dict):
             _merge(into[key], value)
         else:
-            into[key] = thaw(value)  # a deep copy, so later merges never touch the source
+            into[key] = _plain(value)  # a deep copy, so later merges never touch the source
 
 
 def _add_document(layers: _Layers, doc: Mapping[str, Any], rank: int, label: str) -> None:
@@ -244,7 +255,7 @@ def _add_document(layers: _Layers, doc: Mapping[str, Any], rank: int, label: str
                 layers.set(f"{name}.{key}", value, rank, label)
         else:
             _check_section_name(name, label)
-            _merge(layers.extra, {name: table})
+            _merge(layers.tables, {name: table})
 
 
 def _add_overrides(layers: _Layers, overrides: Mapping[str, Any]) -> None:
@@ -269,7 +280,7 @@ def _add_overrides(layers: _Layers, overrides: Mapping[str, Any]) -> None:
             nested: Any = value
             for part in reversed(dotted.split(".")[1:]):
                 nested = {part: nested}
-            _merge(layers.extra, {section: nested})
+            _merge(layers.tables, {section: nested})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -375,21 +386,12 @@ def _section(layers: _Layers, section: str) -> dict[str, Any]:
     return {key: _convert(layers, f"{section}.{key}") for key in SECTION_KEYS[section]}
 
 
-def _freeze(value: Any) -> Any:
-    """Read-only copy: tables become mappingproxies, arrays tuples."""
+def _plain(value: Any) -> Any:
+    """A deep copy as plain dicts and lists."""
     if isinstance(value, Mapping):
-        return MappingProxyType({k: _freeze(v) for k, v in value.items()})
+        return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return tuple(_freeze(v) for v in value)
-    return value
-
-
-def thaw(value: Any) -> Any:
-    """Plain dicts and lists from a frozen value."""
-    if isinstance(value, Mapping):
-        return {k: thaw(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [thaw(v) for v in value]
+        return [_plain(v) for v in value]
     return value
 
 
@@ -482,7 +484,9 @@ def resolve(
                 < layers.sources["optimizer.tracking"][0]):
             optimizer_args[floor] = 0.0
     optimizer = _build(OptimizerSettings, optimizer_args, layers)
-    return Config(preset=preset, scene=scene, optimizer=optimizer, extra=_freeze(layers.extra),
+    fabrication, validation, photometry, outline = read_tables(layers.tables)
+    return Config(preset=preset, scene=scene, optimizer=optimizer, fabrication=fabrication,
+                  validation=validation, photometry=photometry, part_outline_mm=outline,
                   fov_from_display=fov_from_display)
 
 

@@ -7,7 +7,8 @@ from typing import Any
 
 import tomlkit
 
-from aperture_fab.config.config import DISPLAY_FOV, INFINITY, NOMINAL, SECTION_KEYS, Config, thaw
+from aperture_fab.config.config import DISPLAY_FOV, INFINITY, NOMINAL, SECTION_KEYS, Config
+from aperture_fab.config.stages import written_tables
 
 __all__ = ["TOML_HEADER", "to_dict", "to_toml"]
 
@@ -41,7 +42,9 @@ def to_dict(config: Config) -> dict[str, Any]:
                 "gaze_deg": eye.gaze_deg, "rotation_mm": eye.rotation_mm},
         "optimizer": {key: getattr(opt, key) for key in SECTION_KEYS["optimizer"]},
     }
-    return {"preset": config.preset, **sections, **thaw(config.extra)}
+    tables = written_tables(config.fabrication, config.validation, config.photometry,
+                            config.part_outline_mm)
+    return {"preset": config.preset, **sections, **tables}
 
 
 #: The first line of a written config.

@@ -6,16 +6,15 @@ Values in, values out; `aperture_fab.io.formats` turns a part into files.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
 
 import numpy as np
 
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh, build_mesh
 from aperture_fab.fabrication.mesh_checks import MeshReport, check_mesh
-from aperture_fab.fabrication.process import Process, UnmakeableError, resolve_process
+from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.fabrication.quantize import made_sizes, quantize
 from aperture_fab.fabrication.rules import open_fraction_bounds
 from aperture_fab.optics.as_made import MadeOptics
@@ -24,8 +23,6 @@ from aperture_fab.optics.scene import Plate, Scene
 
 __all__ = [
     "Part",
-    "FabricationSettings",
-    "fabrication_settings",
     "build_part",
     "chord_tolerance_mm",
     "design_bounds",
@@ -40,47 +37,6 @@ MIN_CHORD_MM = 2e-4
 MAX_CHORD_MM = 5e-3
 #: Legs of the alignment chamfer on the outline's top-left corner, as a share of the margin.
 CORNER_CUT_SHARE = 0.6
-
-
-@dataclass(frozen=True)
-class FabricationSettings:
-    """How the part is made.
-
-    process: the fabrication process (rules and tolerances).
-    force: write parts the process cannot make, with the violations recorded.
-    step: also write a STEP B-rep.
-    alignment_cut: chamfer the outline's top-left corner so the plate goes one way round.
-    svg_polarity: "holes_black" (holes drawn black on white) or "holes_white".
-    """
-
-    process: Process
-    force: bool = False
-    step: bool = False
-    alignment_cut: bool = True
-    svg_polarity: Literal["holes_black", "holes_white"] = "holes_black"
-
-
-def fabrication_settings(extra: Mapping[str, Any], overrides: Mapping[str, Any] | None = None
-                         ) -> FabricationSettings:
-    """Settings from a config's [process] and [fabrication] tables plus flag overrides
-    (keys "process", "force", "step")."""
-    section = dict(extra.get("process", {}))
-    fab = dict(extra.get("fabrication", {}))
-    fab.update({k: v for k, v in (overrides or {}).items() if k != "process" and v is not None})
-    name = (overrides or {}).get("process") or section.pop("name", "resin")
-    section.pop("name", None)
-    process = resolve_process(str(name), section)
-    allowed = {"force", "step", "alignment_cut", "svg_polarity"}
-    unknown = set(fab) - allowed
-    if unknown:
-        raise ValueError(f"[fabrication] has unknown keys {sorted(unknown)}; allowed: "
-                         f"{sorted(allowed)}.")
-    polarity = fab.get("svg_polarity", "holes_black")
-    if polarity not in ("holes_black", "holes_white"):
-        raise ValueError(f"fabrication.svg_polarity = {polarity!r}; use holes_black or "
-                         "holes_white.")
-    return FabricationSettings(process, bool(fab.get("force", False)), bool(fab.get("step", False)),
-                               bool(fab.get("alignment_cut", True)), polarity)
 
 
 def design_bounds(scene: Scene, process: Process) -> tuple[float, float]:

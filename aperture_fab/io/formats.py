@@ -26,7 +26,8 @@ from aperture_fab.fabrication.mesh import PlateMesh, outline_points_mm
 from aperture_fab.optics.scene import Plate
 
 if TYPE_CHECKING:
-    from aperture_fab.fabrication.part import FabricationSettings, Part
+    from aperture_fab.config.stages import FabricationSettings
+    from aperture_fab.fabrication.part import Part
 
 __all__ = [
     "PART_FORMATS",

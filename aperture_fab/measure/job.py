@@ -19,7 +19,7 @@ import numpy as np
 from aperture_fab.config.config import parse_toml, resolve
 from aperture_fab.fabrication.coupon import Coupon, calibration_coupon, coupon_part
 from aperture_fab.fabrication.layout import HoleLayout
-from aperture_fab.fabrication.part import Part, fabrication_settings
+from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import MAX_OPTICAL_DENSITY
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import holes_csv
@@ -93,7 +93,7 @@ def read_design_part(folder: Path) -> Part:
             raise ValueError(f"--design {folder} has no {path.name}; give the folder "
                              "`aperture-fab design` wrote for the plate.")
     config = read_config(config_path)
-    return load_part(table, "holes", config, fabrication_settings(config.extra, {}), config_path)
+    return load_part(table, "holes", config, config.fabrication, config_path)
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,7 @@ def read_design_coupon(folder: Path) -> tuple[Coupon, Part]:
                          "design` wrote (it holds the coupon: coupon.stl, coupon.svg).")
     check_folder(folder)
     config = read_config(config_path)
-    process = fabrication_settings(config.extra, {}).process
+    process = config.fabrication.process
     coupon = calibration_coupon(process, config.scene.plate)
     return coupon, coupon_part(coupon, process)
 
@@ -211,8 +211,7 @@ def run_measure_coupon(scan: Path, design: Path, out: Path, mm_per_px: float,
             f"Use it: aperture-fab design TARGET --config {out / PROCESS_NAME}")
     text = derived_config((design / CONFIG_NAME).read_text(encoding="utf-8-sig"),
                           str(design / CONFIG_NAME), values, note)
-    config = resolve(None, parse_toml(text, PROCESS_NAME))  # refused here, not by design
-    fabrication_settings(config.extra, {})
+    resolve(None, parse_toml(text, PROCESS_NAME))  # refused here, not by design
     folder = output_folder(out)
     summary = measured_json(measurement, str(scan), str(design))
     smallest = calibration.blocks[0]
@@ -298,10 +297,10 @@ def run_refit(measured: Path, targets: Sequence[Path], *,
                          "display content come from there. Put the design folder back, or "
                          "measure again with --design where it is now.")
     config = read_config(config_path)
-    fabrication = fabrication_settings(config.extra, {})
+    fabrication = config.fabrication
     made_part = load_part(measured / HOLES_NAME, "holes", config, fabrication, config_path)
     design_config = read_config(design / CONFIG_NAME)
-    design_process = fabrication_settings(design_config.extra, {}).process
+    design_process = design_config.fabrication.process
     nominal_part = read_design_part(design)
     saved = read_design(design / DESIGN_NAME)
     check_design(saved, config, config_path)

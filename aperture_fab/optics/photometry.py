@@ -27,26 +27,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
+
+from aperture_fab.config.stages import AGE_RANGE_YEARS, DEFAULT_AGE_YEARS, PhotometrySettings
 
 __all__ = [
     "LightBudget",
-    "PhotometrySettings",
     "Regime",
     "light_budget",
-    "photometry_settings",
     "pupil_diameter_mm",
     "regime",
     "trolands",
 ]
 
-#: A typical phone panel's full-white luminance (cd/m2): phone OLED and LCD panels sit at about
-#: 400 to 800 cd/m2 in normal (not boosted) mode.
-DEFAULT_PANEL_CD_M2 = 500.0
-#: The age Watson and Yellott's formula is referred to, and the range it was fitted over.
+#: The age Watson and Yellott's formula is referred to (its fitted range and the default
+#: observer: aperture_fab.config.stages).
 REFERENCE_AGE_YEARS = 28.58
-AGE_RANGE_YEARS = (20.0, 83.0)
-DEFAULT_AGE_YEARS = 30.0
 #: M(e): the share of the corneal flux that counts when one eye only is adapted.
 MONOCULAR_FACTOR = 0.1
 #: CIE 191:2010's mesopic range (cd/m2): photopic above, scotopic below.
@@ -55,7 +51,6 @@ MESOPIC_LOWER_CD_M2 = 0.005
 #: Assumed and implied pupil differ "materially" beyond this (mm): a tenth of a millimetre
 #: of pupil already moves the view by more than the design's margin (README).
 PUPIL_TOLERANCE_MM = 0.5
-MAX_PANEL_CD_M2 = 1e6
 
 Regime = Literal["photopic", "mesopic", "scotopic"]
 
@@ -90,46 +85,6 @@ def regime(luminance_cd_m2: float) -> Regime:
     if luminance_cd_m2 >= MESOPIC_UPPER_CD_M2:
         return "photopic"
     return "mesopic" if luminance_cd_m2 >= MESOPIC_LOWER_CD_M2 else "scotopic"
-
-
-@dataclass(frozen=True)
-class PhotometrySettings:
-    """The panel and the observer ([photometry] in a config).
-
-    panel_luminance_cd_m2: the display's full-white luminance. observer_age_years: for the pupil
-    formula. adapted_eyes: 2 when both eyes see the device (a binocular headset), 1 when one does.
-    """
-
-    panel_luminance_cd_m2: float = DEFAULT_PANEL_CD_M2
-    observer_age_years: float = DEFAULT_AGE_YEARS
-    adapted_eyes: int = 2
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.panel_luminance_cd_m2, (int, float))
-                and 0 < self.panel_luminance_cd_m2 <= MAX_PANEL_CD_M2):
-            raise ValueError(
-                f"photometry.panel_luminance_cd_m2 = {self.panel_luminance_cd_m2!r} is out of "
-                f"range; allowed: 0 < L <= {MAX_PANEL_CD_M2:g} cd/m2. Give the panel's "
-                f"full-white luminance (a phone panel is about {DEFAULT_PANEL_CD_M2:g}).")
-        low, high = AGE_RANGE_YEARS
-        if not (isinstance(self.observer_age_years, (int, float))
-                and low <= self.observer_age_years <= high):
-            raise ValueError(
-                f"photometry.observer_age_years = {self.observer_age_years!r} is out of range; "
-                f"allowed: {low:g} to {high:g} (the pupil formula's fitted range).")
-        if self.adapted_eyes not in (1, 2):
-            raise ValueError(f"photometry.adapted_eyes = {self.adapted_eyes!r}; allowed: 1 or 2 "
-                             "(2 when both eyes look into the device).")
-
-
-def photometry_settings(extra: Any) -> PhotometrySettings:
-    """Settings from a config's [photometry] table (every key optional)."""
-    table = dict(extra.get("photometry", {}))
-    keys = {"panel_luminance_cd_m2", "observer_age_years", "adapted_eyes"}
-    unknown = sorted(set(table) - keys)
-    if unknown:
-        raise ValueError(f"[photometry] has unknown key(s) {unknown}; allowed: {sorted(keys)}.")
-    return PhotometrySettings(**table)
 
 
 @dataclass(frozen=True)

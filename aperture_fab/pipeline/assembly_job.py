@@ -23,8 +23,9 @@ import numpy as np
 
 import aperture_fab
 from aperture_fab.config.config import Config
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.coupon import calibration_coupon, coupon_part
-from aperture_fab.fabrication.part import FabricationSettings, Part, fabrication_settings, make_part
+from aperture_fab.fabrication.part import Part, make_part
 from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import holes_csv, stl_bytes, svg_text
 from aperture_fab.io.manifest import MANIFEST_NAME, publish, refuse_overwrite, staging
@@ -103,7 +104,7 @@ def load_design_part(folder: Path) -> DesignPart:
     config = read_config(config_path)
     design = read_design(design_path)
     check_design(design, config, config_path)
-    fabrication = fabrication_settings(config.extra)
+    fabrication = config.fabrication
     part = make_part(design.open_fraction, config.scene, fabrication)
     return DesignPart(folder, config, fabrication, design.names, part)
 

@@ -15,8 +15,8 @@ from typing import Any
 import torch
 
 from aperture_fab.config.config import Config
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.config.written import to_toml
-from aperture_fab.fabrication.part import FabricationSettings
 from aperture_fab.io.files import write_atomic
 
 __all__ = ["CHECKPOINT_NAME", "input_digests", "load_checkpoint", "resume_state",

@@ -12,13 +12,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from aperture_fab.config.stages import FabricationSettings, ValidationSettings
 from aperture_fab.config.written import to_dict, to_toml
-from aperture_fab.fabrication.part import FabricationSettings, Part
+from aperture_fab.fabrication.part import Part
 from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain
-from aperture_fab.validation.validate import Validation, ValidationSettings, validate
+from aperture_fab.validation.validate import Validation, validate
 
 if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult

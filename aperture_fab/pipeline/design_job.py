@@ -17,9 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from aperture_fab.config.config import Config, parse_toml, resolve
+from aperture_fab.config.config import Config
 from aperture_fab.config.settings import OptimizerSettings
-from aperture_fab.config.written import to_toml
 from aperture_fab.fabrication.part import (
     FabricationSettings,
     Part,
@@ -27,7 +26,6 @@ from aperture_fab.fabrication.part import (
     made_optics,
     make_part,
 )
-from aperture_fab.fabrication.process import PROCESSES
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import load_targets, output_folder
@@ -40,7 +38,6 @@ from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
-from aperture_fab.optics.photometry import photometry_settings
 from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import (
     Interrupted,
@@ -130,7 +127,6 @@ def design(
     `fabrication`, designed within what its process can make and made into a part."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
-    photometry_settings(config.extra)  # a bad [photometry] table is refused before the work
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
     bounds = made = optics = None
@@ -312,29 +308,16 @@ def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
 def recorded_config(config: Config, fabrication: FabricationSettings | None,
                     formats: Sequence[FormatName] = (), outline_mm: tuple[float, float] | None
                     = None) -> Config:
-    """The config as design.toml records it: the fabrication process (its name and every
-    field that differs from that preset), the fabrication settings as used (step: whether
-    STEP was written) and, under [part], the plate outline as built (a record, not read), so
-    that `--config design.toml` re-runs and `export`/`validate` re-make exactly this part."""
-    document = parse_toml(to_toml(config), "design.toml")
-    for table in ("process", "fabrication", "part"):
-        document.pop(table, None)  # a re-run's stale record never outlives it
+    """The config as design.toml records it: the fabrication settings as used (the process
+    with its changes; step: whether STEP was written) and the plate outline as built (a record,
+    not read), so that `--config design.toml` re-runs and `export`/`validate` re-make exactly
+    this part."""
+    outline = None if outline_mm is None else (round(float(outline_mm[0]), OUTLINE_DECIMALS),
+                                                round(float(outline_mm[1]), OUTLINE_DECIMALS))
     if fabrication is not None:
-        process = fabrication.process
-        base = PROCESSES.get(process.name)
-        changed = {f.name: getattr(process, f.name) for f in dataclasses.fields(process)
-                   if f.name != "name"
-                   and (base is None or getattr(process, f.name) != getattr(base, f.name))}
-        document["process"] = {"name": process.name,
-                               **{k: list(v) if isinstance(v, tuple) else v
-                                  for k, v in changed.items()}}
-        document["fabrication"] = {"force": fabrication.force, "step": "step" in formats,
-                                   "alignment_cut": fabrication.alignment_cut,
-                                   "svg_polarity": fabrication.svg_polarity}
-    if outline_mm is not None:
-        document["part"] = {"outline_mm": [round(float(v), OUTLINE_DECIMALS)
-                                           for v in outline_mm]}
-    return resolve(None, document, file_source="design.toml")
+        config = dataclasses.replace(
+            config, fabrication=dataclasses.replace(fabrication, step="step" in formats))
+    return dataclasses.replace(config, part_outline_mm=outline)
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,

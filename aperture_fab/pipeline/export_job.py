@@ -10,12 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from aperture_fab.config.config import Config, parse_toml, resolve
-from aperture_fab.fabrication.part import (
-    FabricationSettings,
-    Part,
-    fabrication_settings,
-    make_part,
-)
+from aperture_fab.config.stages import FabricationSettings
+from aperture_fab.fabrication.part import Part, make_part
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import output_folder, read_text, write_atomic
 from aperture_fab.io.formats import (
@@ -105,8 +101,7 @@ def export(design: Path, out: Path, *, process: str | None = None, step: bool = 
     design, out = Path(design), Path(out)
     open_fraction, config = read_export_inputs(
         design, config_path if config_path is not None else design.parent / "design.toml", preset)
-    fabrication = fabrication_settings(config.extra, {"process": process, "force": force or None,
-                                                      "step": step or None})
+    fabrication = config.fabrication.with_flags(process, force or None, step or None)
     if not fabrication.force:
         check_plate(fabrication.process, config.scene.plate, config.scene.eye.eye_relief_mm)
     file_format = part_format_of(out, PART_FILE_SUFFIXES, "out =")

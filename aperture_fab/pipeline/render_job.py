@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from aperture_fab.fabrication.part import fabrication_settings
+from aperture_fab.config.stages import MAX_COUNTS
 from aperture_fab.io.files import load_targets, write_atomic
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import refuse_overwrite
@@ -34,7 +34,7 @@ from aperture_fab.pipeline.saved import (
     part_kind,
     read_config,
 )
-from aperture_fab.validation.validate import MAX_COUNTS, layout_fractions
+from aperture_fab.validation.validate import layout_fractions
 
 __all__ = ["DisplayFrame", "RenderedView", "run_display", "run_render"]
 
@@ -143,7 +143,7 @@ def run_render(
     # The flags' values are checked (and named as flags) before any work.
     _check_eye_state(config.scene, eye_mm or eye.positions_mm[0],
                      eye.pupil_mm if pupil_mm is None else float(pupil_mm), focus_mm)
-    fabrication = fabrication_settings(config.extra, {"process": process})
+    fabrication = config.fabrication.with_flags(process=process)
     design = design_beside(config_path, part, kind)
     if design is not None:
         check_design(design, config, config_path)
@@ -302,7 +302,7 @@ def run_display(
         raise ValueError(f"--iterations {iterations!r} is out of range; allowed: a whole number "
                          f"from 0 to {MAX_DISPLAY_ITERATIONS} (0 shows the untracked display). "
                          f"A few are enough: the default is {DEFAULT_ITERATIONS}.")
-    fabrication = fabrication_settings(config.extra, {"process": process})
+    fabrication = config.fabrication.with_flags(process=process)
     design = design_beside(config_path, part, kind)
     if design is not None:
         check_design(design, config, config_path)

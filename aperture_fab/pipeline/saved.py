@@ -18,10 +18,11 @@ from typing import Literal
 import numpy as np
 
 from aperture_fab.config.config import Config, parse_toml, resolve
+from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.mesh_checks import check_mesh
-from aperture_fab.fabrication.part import FabricationSettings, Part, build_part, make_part
+from aperture_fab.fabrication.part import Part, build_part, make_part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.fabrication.quantize import quantize
 from aperture_fab.fabrication.rules import layout_violations

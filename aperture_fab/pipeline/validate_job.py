@@ -22,13 +22,8 @@ from typing import Any, Literal
 import numpy as np
 
 from aperture_fab.config.config import Config
-from aperture_fab.fabrication.part import (
-    FabricationSettings,
-    Part,
-    fabrication_settings,
-    made_optics,
-    make_part,
-)
+from aperture_fab.config.stages import FabricationSettings
+from aperture_fab.fabrication.part import Part, made_optics, make_part
 from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import PART_FORMATS
@@ -174,15 +169,14 @@ def run_validate(
     """
     from aperture_fab.validation.evidence import assemble
     from aperture_fab.validation.report import report_json
-    from aperture_fab.validation.validate import validation_settings
 
     start = time.perf_counter()
     kind = part_kind(part)
     config_path = config_path if config_path is not None else part.parent / CONFIG_NAME
     config = read_config(config_path)
-    fabrication = fabrication_settings(config.extra, {"process": process})
-    settings = validation_settings(config.extra, {"tolerance_samples": tolerance_samples,
-                                                  "mesh_samples": mesh_samples})
+    fabrication = config.fabrication.with_flags(process=process)
+    settings = config.validation.with_flags(tolerance_samples=tolerance_samples,
+                                            mesh_samples=mesh_samples)
     images, names = load_targets(targets, config.scene.display.pixels, target_options)
     design = design_beside(config_path, part, kind)
     if design is not None:

@@ -54,11 +54,9 @@ class Preflight:
         the optimizer's memory estimate per iteration, bytes (optimize/budget.py)."""
         from aperture_fab.fabrication.part import design_bounds
         from aperture_fab.fabrication.rules import check_plate
-        from aperture_fab.optics.photometry import photometry_settings
         from aperture_fab.optimize.budget import estimate_bytes
 
         scene, settings = config.scene, config.optimizer
-        photometry_settings(config.extra)
         if not fabrication.force:
             check_plate(fabrication.process, scene.plate, scene.eye.eye_relief_mm)
         bounds = design_bounds(scene, fabrication.process)

@@ -23,20 +23,10 @@ def require(module: str) -> Any:
                           f"{EXTRA}") from err
 
 
-def _stage_settings(extra: Any) -> tuple[Any, Any]:
-    """Fabrication and validation settings from a config's extra tables ([process],
-    [fabrication], [validation])."""
-    from aperture_fab.fabrication.part import fabrication_settings
-    from aperture_fab.validation.validate import validation_settings
-
-    return fabrication_settings(extra), validation_settings(extra)
-
-
 def resolve_point(preset: str | None, base_file: Mapping[str, Any] | None,
                   overrides: Mapping[str, Any]) -> tuple[Any, Any, Any]:
     """(Config, FabricationSettings, ValidationSettings) of a point; raises what resolve does."""
     from aperture_fab.config import resolve
 
     config = resolve(preset, base_file, overrides, file_source="the [sweep] config file")
-    fabrication, validation = _stage_settings(config.extra)
-    return config, fabrication, validation
+    return config, config.fabrication, config.validation

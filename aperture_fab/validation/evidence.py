@@ -22,7 +22,6 @@ from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import agreement_db, gain_psnr_db
-from aperture_fab.optics.photometry import PhotometrySettings, photometry_settings
 from aperture_fab.validation.figures import (
     figure_eyebox_map,
     figure_histogram,
@@ -96,25 +95,20 @@ def run_block(part_file: str, process: str, command: Sequence[str] | str | None,
 def light_block(config: Config, validation: Validation, displays: np.ndarray, process: Process,
                 open_share: float) -> dict[str, Any] | None:
     """report.json's "photometry" block for the part as built (None when its light efficiency
-    was not computed). A [photometry] table that cannot be read falls back to the defaults,
-    with a warning in the block (the report is not lost at the end of a long design)."""
+    was not computed)."""
     per_target = validation.metrics.get("as_built", {})
     values = [m["light_efficiency"] for m in per_target.values()]
     if not values or any(v is None or not math.isfinite(v) for v in values):
         return None
-    try:
-        settings, error = photometry_settings(config.extra), None
-    except (TypeError, ValueError) as err:
-        settings, error = PhotometrySettings(), f"[photometry] not used: {err}"
     eye, optimizer = config.scene.eye, config.optimizer
     return photometry_block(
-        efficiency=float(np.mean(values)), level=content_level(displays), settings=settings,
+        efficiency=float(np.mean(values)), level=content_level(displays),
+        settings=config.photometry,
         assumed_pupil_mm=eye.pupil_mm, fov_deg=(eye.fov_deg[0], eye.fov_deg[1]),
         min_efficiency=optimizer.min_efficiency, efficiency_weight=optimizer.efficiency_weight,
         min_eye_level=optimizer.min_eye_level,
         optical_density=process.optical_density,
-        optical_density_note=process.optical_density_note, open_share=open_share,
-        settings_error=error)
+        optical_density_note=process.optical_density_note, open_share=open_share)
 
 
 def assemble(config: Config, names: tuple[str, ...], targets: np.ndarray,

@@ -26,12 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from aperture_fab.optics.photometry import (
-    MESOPIC_UPPER_CD_M2,
-    PUPIL_TOLERANCE_MM,
-    PhotometrySettings,
-    light_budget,
-)
+from aperture_fab.config.stages import PhotometrySettings
+from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2, PUPIL_TOLERANCE_MM, light_budget
 from aperture_fab.validation.formatting import percent, sig
 from aperture_fab.validation.report import Verdict
 
@@ -73,21 +69,17 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
                      assumed_pupil_mm: float, fov_deg: tuple[float, float],
                      min_efficiency: float, efficiency_weight: float, optical_density: float,
                      optical_density_note: str, open_share: float,
-                     min_eye_level: float = 0.0,
-                     settings_error: str | None = None) -> dict[str, Any]:
+                     min_eye_level: float = 0.0) -> dict[str, Any]:
     """report.json's "photometry" block (report.py's PHOTOMETRY).
 
     efficiency: the part as built's light efficiency (mean over targets, nominal eye).
     level: the shown content's mean linear level (`content_level`). min_efficiency,
     efficiency_weight: the optimizer's brightness floor and light weight. min_eye_level: its
     floor on the light at the eye (a share of the panel's white; the part's is efficiency x
-    level here). open_share: the plate's open area fraction. settings_error: why the config's
-    [photometry] could not be used (the defaults were), or None.
+    level here). open_share: the plate's open area fraction.
     """
     budget = light_budget(efficiency, level, settings, assumed_pupil_mm, fov_deg)
     warnings = budget.warnings()
-    if settings_error is not None:
-        warnings.insert(0, f"{settings_error} The defaults were used.")
     floor = float(min_efficiency)
     meets = None if floor <= 0 else bool(efficiency >= floor)
     transmitted = 10.0 ** -optical_density

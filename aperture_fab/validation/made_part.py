@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.config.stages import MADE_COPIES
 from aperture_fab.fabrication.part import made_optics
 from aperture_fab.fabrication.process import Process
 from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
@@ -44,10 +45,8 @@ from aperture_fab.optimize.optimizer import fit_display
 
 __all__ = ["MadeQuality", "RegularArray", "RegularFront", "judge_made", "regular_arrays",
            "regular_front", "rivals_at", "made_part_block",
-           "MADE_COPIES", "REGULAR_SIZES", "MAX_REGULAR_PITCH_MM"]
+           "REGULAR_SIZES", "MAX_REGULAR_PITCH_MM"]
 
-#: Made copies (draws of the process's errors) a part is judged over.
-MADE_COPIES = 4
 #: Hole sizes per lattice step in the regular family (from the smallest made to the largest).
 REGULAR_SIZES = 6
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.

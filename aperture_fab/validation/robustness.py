@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from aperture_fab.config.stages import EVALUATION_STATES
 from aperture_fab.metrics import gain_psnr_db, gains
 from aperture_fab.metrics import metrics as view_metrics
 from aperture_fab.optics.eyes import EyeDistribution, EyeStates, distribution_of, percentiles
@@ -28,8 +29,6 @@ __all__ = ["EyeQuality", "Variant", "judge_eyes", "PERCENTILES"]
 
 #: The percentiles the headline reports.
 PERCENTILES = (10, 50, 90)
-#: Eye states of the evaluation set (Halton points over the distribution).
-EVALUATION_STATES = 32
 #: Eyebox map size (n x n pupil offsets over the eyebox's bounding box).
 MAP_SIZE = 7
 #: Points of the pupil and focus sweeps.

@@ -54,6 +54,7 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import Config
+from aperture_fab.config.stages import YIELD_MARGIN_DB, ValidationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh
 from aperture_fab.fabrication.part import Part
@@ -67,118 +68,14 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene
-from aperture_fab.validation.made_part import MADE_COPIES, made_part_block
-from aperture_fab.validation.robustness import EVALUATION_STATES, EyeQuality, Variant, judge_eyes
+from aperture_fab.validation.made_part import made_part_block
+from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
 
-__all__ = ["ValidationSettings", "Validation", "validation_settings", "layout_fractions",
-           "validate"]
+__all__ = ["Validation", "layout_fractions", "validate"]
 
-#: Default yield threshold: this far below the part's own figure without errors.
-YIELD_MARGIN_DB = 3.0
 #: Eye states each tolerance sample of a moving-eye design is judged over.
 TOLERANCE_EYE_STATES = 8
-#: Largest plate-tilt sigma: beyond a few degrees the plate is not seated (an assembly fault,
-#: not a tolerance) and the small-tilt model above no longer holds.
-MAX_TILT_SIGMA_DEG = 5.0
-#: An example of each number of [validation], for messages.
-VALIDATION_EXAMPLES = {"gap_sigma_mm": "0.1", "eye_sigma_mm": "1.0", "tilt_sigma_deg": "0.5",
-                       "threshold_db": "20.0"}
-#: The most of each count a validation takes: beyond these a run takes hours for no visible
-#: gain, so a larger value is a typo (an extra zero), refused before any work rather than
-#: left to run as if hung.
-MAX_COUNTS: dict[str, int] = {
-    "tolerance_samples": 10_000,
-    "mesh_samples": 4096,  # rays per (view pixel, hole) pair; the default budget gives 12 to 256
-    "eye_states": 4096,
-    "made_copies": 1000,
-}
-
-
-@dataclass(frozen=True)
-class ValidationSettings:
-    """How much validation to do.
-
-    tolerance_samples: Monte Carlo samples of the tolerance analysis (0 skips it).
-    threshold_db: PSNR that counts as a good part for the yield; None: the part's own figure
-        without errors (as built, judged like the samples) minus YIELD_MARGIN_DB.
-    gap_sigma_mm: assembly error of the display-to-plate gap (1 sigma).
-    tilt_sigma_deg: assembly tilt of the plate against the display (1 sigma of the angle, about
-        an in-plane axis of uniformly random direction through the plate's centre), degrees,
-        0 to MAX_TILT_SIGMA_DEG. The default 0.5 is a plate seated by hand on spacers: two
-        supports 20 mm apart whose heights each err by the gap sigma (0.1 mm) differ by
-        0.14 mm, 0.4 deg.
-    eye_sigma_mm: eye position error across the eyebox (1 sigma, each axis).
-    mesh_samples: rays per (view pixel, hole) pair for the mesh re-trace (0 skips it; None:
-        a budget of about retrace_sampling.RAY_BUDGET rays, 12 to 256 per pair).
-    diffraction: render the diffraction-aware view.
-    seed: random seed (random mask, tolerance samples, ray sampling).
-    eye_states: states of the evaluation set over the eye distribution (`robustness`); 0 skips
-        the judgement over the distribution.
-    made_copies: made copies (draws of the process's errors) the part as made is judged over,
-        beside the best regular array (`aperture_fab.validation.made_part`); 0 skips it.
-    """
-
-    tolerance_samples: int = 16
-    threshold_db: float | None = None
-    gap_sigma_mm: float = 0.1
-    eye_sigma_mm: float = 1.0
-    tilt_sigma_deg: float = 0.5
-    mesh_samples: int | None = None
-    diffraction: bool = True
-    seed: int = 0
-    eye_states: int = EVALUATION_STATES
-    made_copies: int = MADE_COPIES
-
-    def __post_init__(self) -> None:
-        for name in ("tolerance_samples", "mesh_samples", "seed", "eye_states", "made_copies"):
-            value = getattr(self, name)
-            if name == "mesh_samples" and value is None:
-                continue
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-                raise ValueError(f"validation.{name} = {value!r} must be a whole number >= 0.")
-            most = MAX_COUNTS.get(name)
-            if most is not None and value > most:
-                raise ValueError(f"validation.{name} = {value} is out of range; allowed: 0 to "
-                                 f"{most} (more takes hours for no visible gain). Give a "
-                                 "smaller number.")
-        for name in ("gap_sigma_mm", "eye_sigma_mm", "tilt_sigma_deg", "threshold_db"):
-            value = getattr(self, name)
-            if name == "threshold_db" and value is None:
-                continue
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool)):
-                raise TypeError(f"validation.{name} = {value!r} has the wrong type: expected a "
-                                f"number, e.g. {name} = {VALIDATION_EXAMPLES[name]}.")
-        if not isinstance(self.diffraction, bool):
-            raise TypeError(f"validation.diffraction = {self.diffraction!r} has the wrong type: "
-                            "expected true or false (without quotes).")
-        if self.threshold_db is not None and not math.isfinite(self.threshold_db):
-            raise ValueError(f"validation.threshold_db = {self.threshold_db!r} must be a finite "
-                             "PSNR in dB, e.g. 20, or left out (the part's own figure minus "
-                             f"{YIELD_MARGIN_DB:g} dB).")
-        for name in ("gap_sigma_mm", "eye_sigma_mm"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"validation.{name} = {value!r} must be >= 0 (mm).")
-        tilt = self.tilt_sigma_deg
-        if not (math.isfinite(tilt) and 0 <= tilt <= MAX_TILT_SIGMA_DEG):
-            raise ValueError(
-                f"validation.tilt_sigma_deg = {tilt!r} is out of range; allowed: 0 to "
-                f"{MAX_TILT_SIGMA_DEG:g} (degrees, 1 sigma). A plate tilted more is not seated; "
-                "fix the mount rather than the tolerance."
-            )
-
-
-def validation_settings(extra: Any, overrides: dict[str, Any] | None = None
-                        ) -> ValidationSettings:
-    """Settings from a config's [validation] table plus flag overrides (None values skipped)."""
-    values = dict(extra.get("validation", {}))
-    values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    allowed = set(ValidationSettings.__dataclass_fields__)
-    unknown = sorted(set(values) - allowed)
-    if unknown:
-        raise ValueError(f"[validation] has unknown keys {unknown}; allowed: {sorted(allowed)}.")
-    return ValidationSettings(**values)
 
 
 @dataclass(frozen=True)
