@@ -50,9 +50,9 @@ from aperture_fab.config.stages import ValidationSettings
 from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
+from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import made_part_block
-from aperture_fab.validation.part_figures import figure_made_front
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")

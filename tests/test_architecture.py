@@ -15,18 +15,22 @@ PACKAGE = Path(__file__).resolve().parents[1] / "aperture_fab"
 
 #: Folder (or top-level module) -> the folders it must not import, at any depth of the file.
 FORBIDDEN: dict[str, tuple[str, ...]] = {
-    "config": ("optimize", "fabrication", "validation", "pipeline", "sweep", "cli"),
-    "optics": ("optimize", "fabrication", "validation", "pipeline", "sweep", "cli"),
-    "io": ("optimize", "validation", "pipeline", "sweep", "cli"),
-    "fabrication": ("optimize", "validation", "pipeline", "sweep", "cli"),
-    "optimize": ("validation", "pipeline", "sweep", "cli"),
-    "validation": ("pipeline", "sweep", "cli"),
-    "metrics": ("optics", "optimize", "fabrication", "validation", "pipeline", "sweep", "cli"),
+    "config": ("optimize", "fabrication", "validation", "report", "pipeline", "sweep", "cli"),
+    "optics": ("optimize", "fabrication", "validation", "report", "pipeline", "sweep", "cli"),
+    "io": ("optimize", "validation", "report", "pipeline", "sweep", "cli"),
+    "fabrication": ("optimize", "validation", "report", "pipeline", "sweep", "cli"),
+    "optimize": ("validation", "report", "pipeline", "sweep", "cli"),
+    # Judging apart from drawing: validation computes the verdicts and figures' data, report/
+    # draws them (the page, the figures, the assembly sheet).
+    "validation": ("report", "pipeline", "sweep", "cli"),
+    "report": ("pipeline", "sweep", "cli"),
+    "metrics": ("optics", "optimize", "fabrication", "validation", "report", "pipeline", "sweep",
+                "cli"),
     "pipeline": ("sweep", "cli"),
     "sweep": ("cli",),
     # The error classes that carry their exit status: importable from anywhere, importing nothing.
-    "errors": ("config", "optics", "io", "fabrication", "optimize", "validation", "pipeline",
-               "sweep", "cli", "metrics", "measure", "targets"),
+    "errors": ("config", "optics", "io", "fabrication", "optimize", "validation", "report",
+               "pipeline", "sweep", "cli", "metrics", "measure", "targets"),
 }
 
 

@@ -1,4 +1,4 @@
-"""The assembly sheet (aperture_fab/validation/assembly.py) and `aperture-fab assembly`."""
+"""The assembly sheet (aperture_fab/report/assembly.py) and `aperture-fab assembly`."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from aperture_fab.pipeline.assembly_job import (
     plate_geometry,
     run_assembly,
 )
-from aperture_fab.validation.assembly import (
+from aperture_fab.report.assembly import (
     CAD_EXTRA,
     COUPON_CSV,
     COUPON_STL,

@@ -17,7 +17,9 @@ from conftest import tiny_config
 from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.fabrication.process import PROCESSES, Process, process_summary, resolve_process
 from aperture_fab.io.images import encode_png
-from aperture_fab.validation.evidence import light_block, run_block
+from aperture_fab.report.evidence import light_block, run_block
+from aperture_fab.report.page import report_html
+from aperture_fab.report.sections import png_size
 from aperture_fab.validation.formatting import config_rows, label, percent, quantity, sig
 from aperture_fab.validation.light import (
     LEAKAGE_WARN_SHARE,
@@ -26,10 +28,8 @@ from aperture_fab.validation.light import (
     light_verdict,
     photometry_block,
 )
-from aperture_fab.validation.page_sections import png_size
 from aperture_fab.validation.report import build_report, report_json, validate_report
-from aperture_fab.validation.report_html import overall_level, report_html
-from aperture_fab.validation.verdicts import verdicts
+from aperture_fab.validation.verdicts import overall_level, verdicts
 from tests.test_report import complete_inputs
 
 #: The near-eye preset's field of view (deg) and the issue's example: 0.16 % of a 500 cd/m2

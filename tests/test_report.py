@@ -24,7 +24,7 @@ from PIL import Image
 from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.config.written import to_dict
 from aperture_fab.metrics import METRIC_KEYS
-from aperture_fab.validation.figures import (
+from aperture_fab.report.figures import (
     figure_eyebox_map,
     figure_histogram,
     figure_loss,
@@ -33,12 +33,13 @@ from aperture_fab.validation.figures import (
     figure_thumbnails,
     figure_views,
 )
-from aperture_fab.validation.light import photometry_block
-from aperture_fab.validation.part_figures import (
+from aperture_fab.report.page import SECTION_TITLES, WINDOW_WIDTH_PX, report_html
+from aperture_fab.report.part_figures import (
     figure_errors,
     figure_hole_map,
     figure_made_front,
 )
+from aperture_fab.validation.light import photometry_block
 from aperture_fab.validation.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
@@ -49,13 +50,7 @@ from aperture_fab.validation.report import (
     validate_report,
     views_npz,
 )
-from aperture_fab.validation.report_html import (
-    SECTION_TITLES,
-    WINDOW_WIDTH_PX,
-    report_html,
-    verdicts,
-)
-from aperture_fab.validation.verdicts import FixPlan, fix_plan
+from aperture_fab.validation.verdicts import FixPlan, fix_plan, verdicts
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
 PSNR = {"open": 21.4, "regular_pinholes": 25.1, "random": 18.0, "optimized": 31.8,

@@ -12,7 +12,8 @@ import pytest
 
 from aperture_fab.cli.output import print_eye_distribution
 from aperture_fab.optics.eyes import EyeDistribution
-from aperture_fab.validation.evidence import eye_distribution_block, eye_figures
+from aperture_fab.report.evidence import eye_distribution_block, eye_figures
+from aperture_fab.report.page import report_html
 from aperture_fab.validation.report import (
     EYE_TOPIC,
     FIGURE_KEYS,
@@ -21,8 +22,8 @@ from aperture_fab.validation.report import (
     report_json,
     validate_report,
 )
-from aperture_fab.validation.report_html import EYE_MARGIN_DB, eye_verdict, report_html, verdicts
 from aperture_fab.validation.robustness import EyeQuality, grid_offsets
+from aperture_fab.validation.verdicts import EYE_MARGIN_DB, eye_verdict, verdicts
 from tests.test_report import all_figures, complete_inputs, made_block
 
 NAMES = ("letter",)

@@ -22,8 +22,8 @@ from PIL import Image
 
 from aperture_fab.cli import EXIT_OK, EXIT_REPORT_FAIL
 from aperture_fab.config.presets import DEFAULT_PROCESS
-from aperture_fab.validation import figures, part_figures
-from aperture_fab.validation.figures import (
+from aperture_fab.report import figures, part_figures
+from aperture_fab.report.figures import (
     PANEL_INCHES,
     TITLE_FONT_SIZE,
     TITLE_WIDTH_SHARE,
@@ -31,9 +31,9 @@ from aperture_fab.validation.figures import (
     text_width_in,
     wrap_to_width,
 )
-from aperture_fab.validation.part_figures import figure_errors, figure_hole_map
+from aperture_fab.report.page import MAX_PAGE_HEIGHT_PX, SECTION_TITLES
+from aperture_fab.report.part_figures import figure_errors, figure_hole_map
 from aperture_fab.validation.report import FIGURE_KEYS
-from aperture_fab.validation.report_html import MAX_PAGE_HEIGHT_PX, SECTION_TITLES
 from aperture_fab.validation.variants import VARIANTS
 from tests.test_report import chromium, chromium_dom, page_height
 
@@ -260,13 +260,13 @@ def drawn_texts(fig: Any) -> list[str]:
 def figures_as_drawn(drawn: list[Any]) -> dict[str, Any]:
     """Every figure the page places, drawn with the functions and labels the report uses
     (evidence.assemble, eye_figures): {figure key: the matplotlib Figure}."""
-    from aperture_fab.validation.evidence import _panel_label, eye_figures
-    from aperture_fab.validation.figures import (
+    from aperture_fab.report.evidence import _panel_label, eye_figures
+    from aperture_fab.report.figures import (
         figure_histogram,
         figure_loss,
         figure_mesh_disagreement,
     )
-    from aperture_fab.validation.part_figures import figure_made_front
+    from aperture_fab.report.part_figures import figure_made_front
     from aperture_fab.validation.variants import SHOWN_VARIANTS
     from tests.test_report import made_block
     from tests.test_report_eyes import NAMES, synthetic_eyes
@@ -415,7 +415,8 @@ def report_variant(name: str) -> tuple[dict[str, Any], dict[str, bytes]]:
 @pytest.mark.parametrize("name", ["complete", "not judged over the eye distribution",
                                   "one eye position", "bare"])
 def test_no_section_is_only_a_heading(name: str) -> None:
-    from aperture_fab.validation.report_html import report_html, verdicts
+    from aperture_fab.report.page import report_html
+    from aperture_fab.validation.verdicts import verdicts
 
     report, figures = report_variant(name)
     page = report_html(report, figures, verdicts(report))

@@ -30,7 +30,7 @@ from aperture_fab.cli import (
     EXIT_USAGE,
     main,
 )
-from aperture_fab.validation.report_html import overall_level
+from aperture_fab.validation.verdicts import overall_level
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

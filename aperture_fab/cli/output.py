@@ -129,8 +129,7 @@ def print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
     import textwrap
 
     from aperture_fab.validation.report import Verdict
-    from aperture_fab.validation.report_html import LEVEL_WORDS, NOT_JUDGED
-    from aperture_fab.validation.verdicts import MADE_TOPIC, fix_plan
+    from aperture_fab.validation.verdicts import LEVEL_WORDS, MADE_TOPIC, NOT_JUDGED, fix_plan
 
     headline = metrics.get("eye_distribution")
     if headline is None:
@@ -162,7 +161,7 @@ def _print_eye_table(headline: dict[str, Any], names: Sequence[str]) -> None:
     verdict."""
     import textwrap
 
-    from aperture_fab.validation.report_html import LEVEL_WORDS
+    from aperture_fab.validation.verdicts import LEVEL_WORDS
 
     variants = headline["variants"]
     print(f"PSNR over the eye distribution (dB), p10 / median / p90, {headline['states']} "
@@ -199,7 +198,7 @@ class Judgement:
     @classmethod
     def of(cls, verdicts: Sequence[Mapping[str, str]]) -> Judgement:
         from aperture_fab.validation.report import Verdict
-        from aperture_fab.validation.report_html import overall_level
+        from aperture_fab.validation.verdicts import overall_level
 
         level = overall_level([Verdict(v["topic"], v["level"], v["text"]) for v in verdicts])
         at_level = [v for v in verdicts if v["level"] == level]

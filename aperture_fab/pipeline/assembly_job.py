@@ -37,7 +37,7 @@ from aperture_fab.pipeline.saved import (
     read_config,
     read_design,
 )
-from aperture_fab.validation.assembly import (
+from aperture_fab.report.assembly import (
     CAD_EXTRA,
     COUPON_CSV,
     COUPON_STL,

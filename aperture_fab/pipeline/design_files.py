@@ -34,7 +34,7 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
     write report.json, views.npz and report.html; result.metrics["eye_distribution"] gets the
     headline over the eye distribution (None when not judged)."""
     from aperture_fab.io.formats import read_stl
-    from aperture_fab.validation.evidence import assemble
+    from aperture_fab.report.evidence import assemble
     from aperture_fab.validation.report import eye_headline, report_json
 
     if result.part is None:
@@ -93,7 +93,7 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
 def write_outputs(folder: Path, result: DesignResult) -> None:
     """design.npz, design.toml, display and view PNGs, loss curve (design.json comes last,
     `write_summary`, with the figures of the part as written)."""
-    from aperture_fab.validation.figures import figure_loss
+    from aperture_fab.report.figures import figure_loss
 
     d = result.design
     buffer = io.BytesIO()

@@ -167,7 +167,7 @@ def run_validate(
     mesh_samples: override [validation].
     stage: called with a line as each stage starts (for logs, where there are no progress bars).
     """
-    from aperture_fab.validation.evidence import assemble
+    from aperture_fab.report.evidence import assemble
     from aperture_fab.validation.report import report_json
 
     start = time.perf_counter()

@@ -2,8 +2,8 @@
 views archive.
 
 Pure functions, values in and bytes or text out; the pipeline writes the files. The figures are
-in aperture_fab.validation.figures, the verdicts in aperture_fab.validation.verdicts, the HTML
-page in aperture_fab.validation.report_html.
+in aperture_fab.report.figures, the verdicts in aperture_fab.validation.verdicts, the HTML
+page in aperture_fab.report.page.
 
 report.json (`build_report`, checked by `validate_report`, written by `report_json`):
 
@@ -291,7 +291,7 @@ def build_report(
 ) -> dict[str, Any]:
     """The report.json structure, checked (see the module docstring).
 
-    eye_distribution: the EYE_DISTRIBUTION block (aperture_fab.validation.evidence builds it from
+    eye_distribution: the EYE_DISTRIBUTION block (aperture_fab.report.evidence builds it from
         robustness.EyeQuality), or None when the eye distribution was not judged.
     verdicts: Verdicts (or their dicts), most important first; usually added afterwards, since
         aperture_fab.validation.verdicts.verdicts reads the report.

@@ -1,9 +1,9 @@
 """The validation report for people: one self-contained HTML page, the verdict first.
 
 Pure functions, the report.json structure (aperture_fab.validation.report), its verdicts
-(aperture_fab.validation.verdicts) and PNG figures (aperture_fab.validation.figures,
+(aperture_fab.validation.verdicts) and PNG figures (aperture_fab.report.figures,
 part_figures) in, text out; the pipeline writes report.html. The sections after the lead are in
-aperture_fab.validation.page_sections.
+aperture_fab.report.sections.
 
 The page is short enough to read (under MAX_PAGE_HEIGHT_PX at a 1280 px wide window, checked in
 headless Chromium by the slow tests): figures side by side in grids, small sections in pairs,
@@ -18,8 +18,7 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from aperture_fab.validation.formatting import NOT_COMPUTED, e, table
-from aperture_fab.validation.page_sections import (
+from aperture_fab.report.sections import (
     PNG_SIGNATURE,
     config_html,
     display_html,
@@ -35,6 +34,7 @@ from aperture_fab.validation.page_sections import (
     timings_html,
     tolerance_table,
 )
+from aperture_fab.validation.formatting import NOT_COMPUTED, e, table
 from aperture_fab.validation.report import (
     EYE_TOPIC,
     EYE_VARIANT_LABELS,
@@ -46,19 +46,16 @@ from aperture_fab.validation.report import (
     validate_report,
 )
 from aperture_fab.validation.verdicts import (
-    EYE_MARGIN_DB,
+    JUDGED,
     LEVEL_WORDS,
-    NOT_JUDGED,
     FixPlan,
     describe_distribution,
-    eye_verdict,
     fix_plan,
-    verdicts,
+    overall_level,
 )
 
-__all__ = ["CSP", "EYE_MARGIN_DB", "LEVEL_WORDS", "MAX_PAGE_HEIGHT_PX", "NOT_JUDGED",
-           "PAIRED_SECTIONS", "SECTION_TITLES", "WINDOW_WIDTH_PX", "eye_verdict",
-           "overall_level", "report_html", "verdicts"]
+__all__ = ["CSP", "MAX_PAGE_HEIGHT_PX", "PAIRED_SECTIONS", "SECTION_TITLES", "WINDOW_WIDTH_PX",
+           "report_html"]
 
 #: The page's sections, top to bottom: (id, heading).
 SECTION_TITLES: tuple[tuple[str, str], ...] = (
@@ -85,8 +82,6 @@ SECTION_TITLES: tuple[tuple[str, str], ...] = (
 PAIRED_SECTIONS: tuple[tuple[str, str], ...] = (
     ("plate", "display"), ("loss", "tolerance"), ("fabrication", "mesh"), ("timings", "scene"),
 )
-#: Judged levels, worst first (info is a finding without a judgement).
-JUDGED = ("fail", "warn", "pass")
 #: The page's height (CSS px) in a WINDOW_WIDTH_PX wide window stays under this for the default
 #: design (docs/validation.md; measured in headless Chromium by the slow tests).
 MAX_PAGE_HEIGHT_PX = 6000
@@ -167,11 +162,6 @@ def _verdict_html(verdict: Verdict) -> str:
     topic = f'<span class="topic">{e(_topic(verdict.topic))}:</span> ' if verdict.topic else ""
     return (f'<p class="verdict verdict-{verdict.level}">{_badge(verdict.level)}{topic}'
             f"{e(verdict.text)}</p>")
-
-
-def overall_level(lines: Sequence[Verdict]) -> str:
-    """The page's verdict: its worst judged level (fail, warn, pass), or info when none is."""
-    return next((level for level in JUDGED if any(v.level == level for v in lines)), "info")
 
 
 def _recommended_html(plan: FixPlan) -> str:

@@ -1,7 +1,7 @@
 """The report's figures of the part and its errors: the plate to scale, error maps, and the
 part as made against the regular pinhole family.
 
-Pure functions, values in and PNG bytes out (aperture_fab.validation.figures draws the others);
+Pure functions, values in and PNG bytes out (aperture_fab.report.figures draws the others);
 matplotlib's object-oriented API only.
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from aperture_fab.metrics import gain
-from aperture_fab.validation.figures import (
+from aperture_fab.report.figures import (
     MAX_PANELS_PER_ROW,
     PANEL_INCHES,
     TITLE_FONT_SIZE,

@@ -5,7 +5,7 @@ Values in, HTML text out: the part as built, the design's config, the process an
 target names. The page holds the plate drawing (outline, alignment key, thickness, holes), the
 device in section (display, frame, plate, eye), where and which way up the display image goes on
 the panel, the calibration coupon of docs/processes.md and a numbered procedure. Its drawings are
-inline SVG in millimetres (aperture_fab.validation.assembly_drawings); printed at 100 % on A4
+inline SVG in millimetres (aperture_fab.report.assembly_drawings); printed at 100 % on A4
 they hold their stated scale, which the page's 1:1 scale bar lets the reader check.
 
 The commands it prints (the cad/ scripts for the frame and a STEP coupon) run as printed: in
@@ -29,7 +29,7 @@ from aperture_fab.fabrication.layout import HoleLayout, layout_stats
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.optics.scene import Scene
-from aperture_fab.validation.assembly_drawings import (
+from aperture_fab.report.assembly_drawings import (
     StackSizes,
     coupon_drawing,
     placement_drawing,

@@ -22,7 +22,7 @@ from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import agreement_db, gain_psnr_db
-from aperture_fab.validation.figures import (
+from aperture_fab.report.figures import (
     figure_eyebox_map,
     figure_histogram,
     figure_loss,
@@ -31,12 +31,13 @@ from aperture_fab.validation.figures import (
     figure_thumbnails,
     figure_views,
 )
-from aperture_fab.validation.light import content_level, photometry_block
-from aperture_fab.validation.part_figures import (
+from aperture_fab.report.page import report_html
+from aperture_fab.report.part_figures import (
     figure_errors,
     figure_hole_map,
     figure_made_front,
 )
+from aperture_fab.validation.light import content_level, photometry_block
 from aperture_fab.validation.report import (
     EYE_VARIANT_LABELS,
     EYE_VARIANTS,
@@ -45,7 +46,6 @@ from aperture_fab.validation.report import (
     validate_report,
     views_npz,
 )
-from aperture_fab.validation.report_html import report_html
 from aperture_fab.validation.robustness import PERCENTILES, EyeQuality
 from aperture_fab.validation.validate import Validation
 from aperture_fab.validation.variants import SHOWN_VARIANTS, VARIANTS

@@ -1,6 +1,6 @@
 """The validation report's figures: PNG bytes from arrays, drawn with matplotlib.
 
-Pure functions, values in and PNG bytes out; aperture_fab.validation.report_html places them on the
+Pure functions, values in and PNG bytes out; aperture_fab.report.page places them on the
 page. matplotlib is imported inside the functions (an optional package: pip install matplotlib),
 and only its object-oriented API is used, so no pyplot global figure state.
 """

@@ -3,7 +3,7 @@ labelled for people (aperture_fab.validation.formatting), and the display conten
 resolution.
 
 Pure functions, report.json blocks (aperture_fab.validation.report) in, escaped HTML out;
-aperture_fab.validation.report_html puts them on the page.
+aperture_fab.report.page puts them on the page.
 """
 
 from __future__ import annotations
