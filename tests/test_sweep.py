@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -280,7 +281,8 @@ def fake_report(gap_mm: float, pitch_mm: float, process: str) -> dict[str, Any]:
 
 @pytest.fixture
 def fake_design(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
-    """Replace run_design by a fake that writes report.json; returns the list of its calls.
+    """Replace run_design by a fake that writes report.json and returns it as the result's
+    report, as run_design does; returns the list of its calls.
     A gap of exactly 12 mm raises, like a point the process cannot make."""
     return install_fake_design(monkeypatch)
 
@@ -291,15 +293,16 @@ def install_fake_design(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]
 
     calls: list[dict[str, Any]] = []
 
-    def run_design(paths: list[Path], out: Path, config: Any, **kwargs: Any) -> None:
+    def run_design(paths: list[Path], out: Path, config: Any, **kwargs: Any) -> Any:
         plate = config.scene.plate
         process = kwargs["fabrication"].process.name
         calls.append({"gap_mm": plate.gap_mm, "process": process})
         assert all(Path(p).is_file() for p in paths)
         if plate.gap_mm == 12.0:
             raise ValueError("cannot make this one")
-        (out.parent / "report.json").write_text(json.dumps(
-            fake_report(plate.gap_mm, plate.pitch_mm[0], process)))
+        report = fake_report(plate.gap_mm, plate.pitch_mm[0], process)
+        (out.parent / "report.json").write_text(json.dumps(report))
+        return SimpleNamespace(report=report)
 
     monkeypatch.setattr(aperture_fab.pipeline, "run_design", run_design)
     return calls

@@ -302,7 +302,7 @@ fake = aperture_fab.pipeline.run_design
 def killing(paths, out, config, **kwargs):
     if len(calls) == 2:
         os.kill(os.getpid(), signal.SIGKILL)
-    fake(paths, out, config, **kwargs)
+    return fake(paths, out, config, **kwargs)
 
 aperture_fab.pipeline.run_design = killing
 run_sweep(load_spec(Path(sys.argv[2])), RunOptions(out=Path(sys.argv[3]), backend="serial"),
@@ -347,10 +347,11 @@ def test_sigterm_writes_the_tables(sweep_dir: Path, fake_design: list[dict[str, 
 
     real = aperture_fab.pipeline.run_design
 
-    def stopping(paths: list[Path], out: Path, config: Any, **kwargs: Any) -> None:
-        real(paths, out, config, **kwargs)
+    def stopping(paths: list[Path], out: Path, config: Any, **kwargs: Any) -> Any:
+        result = real(paths, out, config, **kwargs)
         if len(fake_design) == 2:
             os.kill(os.getpid(), signal.SIGTERM)
+        return result
 
     monkeypatch.setattr(aperture_fab.pipeline, "run_design", stopping)
     path = write_sweep(sweep_dir, GRID)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,7 +46,7 @@ from aperture_fab.report.assembly import (
     assembly_html,
 )
 
-__all__ = ["ASSEMBLY_NAME", "SHEET_NAMES", "DesignPart", "PlateGeometry", "assembly_text",
+__all__ = ["ASSEMBLY_NAME", "SHEET_NAMES", "DesignPart", "PlateGeometry", "display_pngs",
            "command_setup", "load_design_part", "plate_geometry", "run_assembly", "sheet_files",
            "write_assembly"]
 
@@ -136,28 +136,25 @@ def command_setup(design_folder: Path) -> CommandSetup:
                         f"{shlex.quote(python)} -m pip install 'aperture-fab[{CAD_EXTRA}]'")
 
 
-def assembly_text(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
-                  names: Sequence[str], design_folder: Path) -> str:
-    """The sheet for a part whose design is published to design_folder (its commands run
-    there); the display PNGs in `folder`, when there, become its thumbnails."""
-    displays = {}
-    for name in names:
-        png = folder / f"display_{name}.png"
-        if png.is_file():
-            displays[name] = png.read_bytes()
-    return assembly_html(part, config, fabrication.process, list(names),
-                         design_name=Path(design_folder).resolve().name, displays=displays,
-                         commands=command_setup(design_folder))
+def display_pngs(folder: Path, names: Sequence[str]) -> dict[str, bytes]:
+    """The display PNGs (display_<name>.png) a design folder holds, name -> bytes."""
+    return {name: (folder / f"display_{name}.png").read_bytes() for name in names
+            if (folder / f"display_{name}.png").is_file()}
 
 
-def sheet_files(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
-                names: Sequence[str], design_folder: Path) -> dict[str, bytes]:
-    """The sheet's set, name -> bytes: assembly.html (assembly_text's arguments) and the
-    calibration coupon as a part, built by the plate's mesh builder and written by the plate's
-    formats (mm): coupon.stl, coupon.svg (the design's SVG polarity), coupon_holes.csv."""
+def sheet_files(part: Part, config: Config, fabrication: FabricationSettings,
+                names: Sequence[str], design_folder: Path, displays: Mapping[str, bytes]
+                ) -> dict[str, bytes]:
+    """The sheet's set, name -> bytes: assembly.html, for a part whose design is published to
+    design_folder (its commands run there), the display PNGs `displays` (name -> bytes) its
+    thumbnails; and the calibration coupon as a part, built by the plate's mesh builder and
+    written by the plate's formats (mm): coupon.stl, coupon.svg (the design's SVG polarity),
+    coupon_holes.csv."""
     process = fabrication.process
     coupon = coupon_part(calibration_coupon(process, config.scene.plate), process)
-    sheet = assembly_text(folder, part, config, fabrication, names, design_folder)
+    sheet = assembly_html(part, config, process, list(names),
+                          design_name=Path(design_folder).resolve().name, displays=displays,
+                          commands=command_setup(design_folder))
     return {
         ASSEMBLY_NAME: sheet.encode(),
         COUPON_STL: stl_bytes(coupon.mesh),
@@ -168,10 +165,12 @@ def sheet_files(folder: Path, part: Part, config: Config, fabrication: Fabricati
 
 
 def write_assembly(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
-                   names: Sequence[str], design_folder: Path) -> list[Path]:
+                   names: Sequence[str], design_folder: Path, displays: Mapping[str, bytes]
+                   ) -> list[Path]:
     """Write the sheet's set (sheet_files) into `folder`, a design job's staging folder, for
-    its part; design_folder: where the design is published (the sheet's commands run there)."""
-    files = sheet_files(folder, part, config, fabrication, names, design_folder)
+    its part; design_folder: where the design is published (the sheet's commands run there);
+    displays: the display PNGs the job wrote, name -> bytes."""
+    files = sheet_files(part, config, fabrication, names, design_folder, displays)
     for name, data in files.items():
         write_atomic(folder / name, data)
     return [folder / name for name in files]
@@ -210,8 +209,8 @@ def run_assembly(folder: Path, out: Path | None = None) -> Path:
                          "or choose another --out.")
     loaded = load_design_part(folder)
     design_folder = loaded.folder.resolve()
-    files = sheet_files(design_folder, loaded.part, loaded.config, loaded.fabrication,
-                        loaded.names, design_folder)
+    files = sheet_files(loaded.part, loaded.config, loaded.fabrication, loaded.names,
+                        design_folder, display_pngs(design_folder, loaded.names))
     _add_to_set(design_folder, files)
     sheet = design_folder / ASSEMBLY_NAME
     if target is None or target.resolve() == sheet:

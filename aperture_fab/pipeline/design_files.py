@@ -23,19 +23,20 @@ from aperture_fab.validation.validate import Validation, validate
 
 if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult
+    from aperture_fab.report.evidence import Evidence
 
-__all__ = ["part_formats", "write_outputs", "write_part", "write_report", "write_summary"]
+__all__ = ["judge_written", "part_formats", "write_evidence", "write_outputs", "write_part",
+           "write_summary"]
 
 
-def write_report(folder: Path, result: DesignResult, fabrication: FabricationSettings,
-                 settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
-                 ) -> Validation:
+def judge_written(result: DesignResult, fabrication: FabricationSettings,
+                  settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
+                  ) -> tuple[Validation, Evidence]:
     """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
-    write report.json, views.npz and report.html; result.metrics["eye_distribution"] gets the
-    headline over the eye distribution (None when not judged)."""
+    assemble its report (report.json's content, views.npz, report.html): values, nothing
+    written (`write_evidence` writes them)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.report.evidence import assemble
-    from aperture_fab.validation.report import eye_headline, report_json
 
     if result.part is None:
         raise ValueError("no part to validate: design with fabrication settings first.")
@@ -50,12 +51,16 @@ def write_report(folder: Path, result: DesignResult, fabrication: FabricationSet
                         result.design.loss_history, result.part, fabrication.process, checked,
                         result.timings_s, part_file="plate.stl", command=command)
     evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
+    return checked, evidence
+
+
+def write_evidence(folder: Path, evidence: Evidence) -> None:
+    """views.npz, report.html and report.json of a judged part."""
+    from aperture_fab.validation.report import report_json
+
     write_atomic(folder / "views.npz", evidence.views_npz)
     write_atomic(folder / "report.html", evidence.html)
     write_atomic(folder / "report.json", report_json(evidence.report))
-    result.metrics["eye_distribution"] = eye_headline(evidence.report)
-    result.verdicts[:] = evidence.report["verdicts"]
-    return checked
 
 
 def part_formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
@@ -90,9 +95,10 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
     return written
 
 
-def write_outputs(folder: Path, result: DesignResult) -> None:
+def write_outputs(folder: Path, result: DesignResult) -> dict[str, bytes]:
     """design.npz, design.toml, display and view PNGs, loss curve (design.json comes last,
-    `write_summary`, with the figures of the part as written)."""
+    `write_summary`, with the figures of the part as written). Returns each target's display
+    PNG, name -> bytes (the assembly sheet shows them)."""
     from aperture_fab.report.figures import figure_loss
 
     d = result.design
@@ -108,14 +114,16 @@ def write_outputs(folder: Path, result: DesignResult) -> None:
     np.savez_compressed(buffer, **arrays)
     write_atomic(folder / "design.npz", buffer.getvalue())
     write_atomic(folder / "design.toml", to_toml(result.config))
+    displays = {name: encode_png(shown[t]) for t, name in enumerate(result.names)}
     for t, name in enumerate(result.names):
-        write_atomic(folder / f"display_{name}.png", encode_png(shown[t]))
+        write_atomic(folder / f"display_{name}.png", displays[name])
         write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
         for variant in ("initial", "optimized", "open", "regular_pinholes"):
             view = result.views[variant][t, 0]
             scaled = view * gain(view, result.targets[t])
             write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
     write_atomic(folder / "loss.png", figure_loss(d.loss_history))
+    return displays
 
 
 def write_summary(folder: Path, result: DesignResult) -> None:

@@ -19,13 +19,8 @@ import torch
 
 from aperture_fab.config.config import Config
 from aperture_fab.config.settings import OptimizerSettings
-from aperture_fab.fabrication.part import (
-    FabricationSettings,
-    Part,
-    design_bounds,
-    made_optics,
-    make_part,
-)
+from aperture_fab.config.stages import FabricationSettings, ValidationSettings
+from aperture_fab.fabrication.part import Part, design_bounds, made_optics, make_part
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import load_targets, output_folder
@@ -55,17 +50,16 @@ from aperture_fab.pipeline.checkpoint import (
     sha256,
 )
 from aperture_fab.pipeline.design_files import (
+    judge_written,
     part_formats,
+    write_evidence,
     write_outputs,
     write_part,
-    write_report,
     write_summary,
 )
 from aperture_fab.pipeline.saved import validations_of
-from aperture_fab.validation.validate import (
-    ValidationSettings,
-    layout_fractions,
-)
+from aperture_fab.validation.report import eye_headline, json_ready
+from aperture_fab.validation.validate import Validation, layout_fractions
 
 __all__ = ["DesignResult", "check_light_floor", "design", "recorded_config", "run_design"]
 
@@ -99,6 +93,8 @@ class DesignResult:
     timings_s: seconds per stage.
     verdicts: the report's findings ({"topic", "level", "text"}, most important first) when
         run_design validated the part; empty otherwise.
+    report: report.json's content (plain JSON values) when run_design validated the part: the
+        judged report the sweep tabulates; None otherwise.
     """
 
     config: Config
@@ -111,6 +107,7 @@ class DesignResult:
     built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     verdicts: list[dict[str, str]] = field(default_factory=list)
+    report: dict[str, Any] | None = None
 
 
 def design(
@@ -320,6 +317,19 @@ def recorded_config(config: Config, fabrication: FabricationSettings | None,
     return dataclasses.replace(config, part_outline_mm=outline)
 
 
+def _with_judgement(result: DesignResult, checked: Validation, report: dict[str, Any]
+                    ) -> DesignResult:
+    """The result with the written part's judgement: the headline over the eye distribution
+    and the metrics as built (design.json gives them in this order), the verdicts and the
+    report."""
+    metrics = {**result.metrics, "eye_distribution": eye_headline(report)}
+    for variant in ("quantized", "as_built"):
+        per_target = [checked.metrics[variant][name] for name in result.names]
+        metrics[variant] = {key: [m[key] for m in per_target] for key in ("mse", "psnr_db")}
+    return dataclasses.replace(result, metrics=metrics, verdicts=list(report["verdicts"]),
+                               report=json_ready(report))
+
+
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
                target_options: TargetOptions | None = None,
                fabrication: FabricationSettings | None = None,
@@ -373,30 +383,29 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         result, config=recorded_config(config, fabrication, formats, outline))
     staged = on_staged if on_staged is not None else (lambda _stage: None)
     with staging(folder) as stage_folder:
-        write_outputs(stage_folder, result)
+        display_pngs = write_outputs(stage_folder, result)
         staged(stage_folder)
         if result.part is not None and fabrication is not None:
             announce(f"design: writing {', '.join(formats)} ({result.part.layout.count} holes)")
             start = time.perf_counter()
             written = write_part(stage_folder, result.part, fabrication, formats, progress,
                                  on_written=staged)
-            result.timings_s["export_s"] = time.perf_counter() - start
+            result = dataclasses.replace(result, timings_s={
+                **result.timings_s, "export_s": time.perf_counter() - start})
             if validation is not None:
                 announce("design: validating the part as written (eye distribution, mesh "
                          "re-trace, tolerances)")
-                checked = write_report(stage_folder, result, fabrication, validation,
-                                       written[stage_folder / "plate.stl"], command)
-                for variant in ("quantized", "as_built"):
-                    per_target = [checked.metrics[variant][name] for name in result.names]
-                    result.metrics[variant] = {key: [m[key] for m in per_target]
-                                               for key in ("mse", "psnr_db")}
+                checked, evidence = judge_written(result, fabrication, validation,
+                                                  written[stage_folder / "plate.stl"], command)
+                write_evidence(stage_folder, evidence)
+                result = _with_judgement(result, checked, evidence.report)
         write_summary(stage_folder, result)  # with the figures of the part as written
         staged(stage_folder)
         if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
             from aperture_fab.pipeline.assembly_job import write_assembly
 
             write_assembly(stage_folder, result.part, result.config, fabrication, result.names,
-                           folder.resolve())
+                           folder.resolve(), display_pngs)
         publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
     for stale in validated:  # they judged the design just replaced
         remove_listed(stale)

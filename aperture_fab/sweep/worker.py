@@ -158,10 +158,11 @@ def run_point(job: Job, target_files: TargetFiles | None = None
             _cached_targets(job, target_files)
         config, fabrication, validation = resolve_point(job.preset, job.base_file,
                                                         dict(record["overrides"]))
-        run_design(targets, folder / "plate.stl", config, fabrication=fabrication,
-                   validation=validation, progress=False)
-        report = json.loads((folder / "report.json").read_text())
-        record.update(status="ok", figures=figures_from_report(report), error=None,
+        result = run_design(targets, folder / "plate.stl", config, fabrication=fabrication,
+                            validation=validation, progress=False)
+        if result.report is None:  # resolve_point always gives validation settings
+            raise ValueError("the design job returned no report: it did not validate the part")
+        record.update(status="ok", figures=figures_from_report(result.report), error=None,
                       traceback=None)
     except Exception as err:  # a point's failure is data, not the sweep's end
         if type(err).__name__ == "Interrupted":  # the optimizer's Ctrl-C: stop the sweep
