@@ -3,7 +3,8 @@
 One function per command, each returning what its command prints: `run_design` (`design`: a
 folder with the part and its report), `validate`, `render`, `display`, `export`, `assembly`,
 `measure_plate` (`measure`: `aperture_fab.measure` is its package); `design` is the design job
-without files (targets and config in, the design and its part out).
+without files (targets and config in; the design, its part, the part's files as bytes and, with
+validation settings, its judged report out).
 
 The public names are loaded on first use (PEP 562): `import aperture_fab` stays cheap, so the
 command line can print its help, presets and processes without importing PyTorch, and

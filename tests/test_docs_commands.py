@@ -340,6 +340,26 @@ def test_the_readme_api_example_runs(workspace: Path, monkeypatch: pytest.Monkey
     assert "holes;" in capsys.readouterr().out
 
 
+@pytest.mark.slow
+@pytest.mark.usefixtures("one_torch_thread")
+def test_the_readme_in_memory_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                           ) -> None:
+    """The README's in-memory design block, run as written: the part's files, the verdicts and
+    the report come back as values and nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    namespace: dict[str, Any] = {}
+    exec(compile(readme_python("# The design job in memory"), "README.md", "exec"), namespace)
+    made = namespace["made"]
+    from aperture_fab.fabrication.mesh_checks import check_mesh
+    from aperture_fab.io.formats import read_stl
+
+    checked = check_mesh(read_stl(made.part_files["plate.stl"]))  # the bytes are the part
+    assert checked.watertight and checked.genus == made.part.layout.count > 0
+    assert made.verdicts and made.verdicts == made.report["verdicts"]
+    assert set(made.report_files) == {"report.json", "report.html", "views.npz"}
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
 # -- the workspace ---------------------------------------------------------------------------
 
 def readme_config() -> str:

@@ -25,8 +25,8 @@ if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult
     from aperture_fab.report.evidence import Evidence
 
-__all__ = ["judge_written", "part_formats", "write_evidence", "write_outputs", "write_part",
-           "write_summary"]
+__all__ = ["default_formats", "evidence_files", "judge_written", "part_bytes", "part_formats",
+           "write_outputs", "write_part", "write_summary"]
 
 
 def judge_written(result: DesignResult, fabrication: FabricationSettings,
@@ -34,7 +34,7 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
                   ) -> tuple[Validation, Evidence]:
     """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
     assemble its report (report.json's content, views.npz, report.html): values, nothing
-    written (`write_evidence` writes them)."""
+    written (`evidence_files` gives their bytes)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.report.evidence import assemble
 
@@ -54,13 +54,12 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
     return checked, evidence
 
 
-def write_evidence(folder: Path, evidence: Evidence) -> None:
-    """views.npz, report.html and report.json of a judged part."""
+def evidence_files(evidence: Evidence) -> dict[str, bytes]:
+    """The files of a judged part's report, name -> bytes: views.npz, report.html, report.json."""
     from aperture_fab.validation.report import report_json
 
-    write_atomic(folder / "views.npz", evidence.views_npz)
-    write_atomic(folder / "report.html", evidence.html)
-    write_atomic(folder / "report.json", report_json(evidence.report))
+    return {"views.npz": evidence.views_npz, "report.html": evidence.html.encode(),
+            "report.json": report_json(evidence.report).encode()}
 
 
 def part_formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
@@ -69,16 +68,19 @@ def part_formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatNam
     return tuple(name for name in PART_FORMATS if name != "step" or step)
 
 
-def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
+def default_formats(fabrication: FabricationSettings) -> tuple[FormatName, ...]:
+    """Every format; STEP (slow) only with fabrication.step."""
+    return tuple(name for name in PART_FORMATS if name != "step" or fabrication.step)
+
+
+def part_bytes(part: Part, fabrication: FabricationSettings,
                formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True,
-               on_written: Callable[[Path], None] | None = None) -> dict[Path, bytes]:
-    """Write the part's files atomically; a format that fails leaves no file behind. Returns
-    each file written with its bytes, in the order written (the checks of the part as written
-    read these, not the disk). on_written: called with the folder after each format's file
-    (run_design's testing seam)."""
+               on_format: Callable[[dict[str, bytes]], None] | None = None) -> dict[str, bytes]:
+    """The part's files in `formats`, file name -> bytes, in that order, with progress bars.
+    on_format: told each format's files as they are made."""
     from tqdm import tqdm
 
-    written: dict[Path, bytes] = {}
+    files: dict[str, bytes] = {}
     for fmt in tqdm(formats, desc="export", unit="file", disable=not progress, leave=False):
         holes = tqdm(total=part.layout.count, desc=f"{fmt} holes", unit="hole", leave=False,
                      disable=not progress or fmt != "step")
@@ -86,12 +88,28 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
         def advance(done: int, bar: Any = holes) -> None:
             bar.update(done - bar.n)
 
-        for name, data in part_files(part, (fmt,), fabrication, advance).items():
+        made = part_files(part, (fmt,), fabrication, advance)
+        holes.close()
+        files.update(made)
+        if on_format is not None:
+            on_format(made)
+    return files
+
+
+def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
+               formats: Sequence[FormatName] = tuple(PART_FORMATS), progress: bool = True
+               ) -> dict[Path, bytes]:
+    """Write the part's files atomically, each format's as it is made (an interrupted export
+    keeps those before it); a format that fails leaves no file behind. Returns each file
+    written with its bytes, in the order written."""
+    written: dict[Path, bytes] = {}
+
+    def write(made: dict[str, bytes]) -> None:
+        for name, data in made.items():
             write_atomic(folder / name, data)
             written[folder / name] = data
-        holes.close()
-        if on_written is not None:
-            on_written(folder)
+
+    part_bytes(part, fabrication, formats, progress, on_format=write)
     return written
 
 

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -23,7 +23,7 @@ from aperture_fab.config.stages import FabricationSettings, ValidationSettings
 from aperture_fab.fabrication.part import Part, design_bounds, made_optics, make_part
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
-from aperture_fab.io.files import load_targets, output_folder
+from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import FormatName
 from aperture_fab.io.images import TargetOptions, prepare_targets, resample
 from aperture_fab.io.manifest import publish, remove_listed, staging
@@ -50,16 +50,20 @@ from aperture_fab.pipeline.checkpoint import (
     sha256,
 )
 from aperture_fab.pipeline.design_files import (
+    default_formats,
+    evidence_files,
     judge_written,
+    part_bytes,
     part_formats,
-    write_evidence,
     write_outputs,
-    write_part,
     write_summary,
 )
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.report import eye_headline, json_ready
 from aperture_fab.validation.validate import Validation, layout_fractions
+
+if TYPE_CHECKING:
+    from aperture_fab.report.evidence import Evidence
 
 __all__ = ["DesignResult", "check_light_floor", "design", "recorded_config", "run_design"]
 
@@ -74,15 +78,16 @@ DEFAULT_COMMAND = ("python", "-c", "aperture_fab.pipeline.design_job.run_design(
 
 @dataclass(frozen=True)
 class DesignResult:
-    """Everything the design job produced.
+    """Everything the design job produced, as values (run_design writes them).
 
+    config: the config as design.toml records it (`recorded_config`).
     design: the optimized plate and display content.
     names: (T,) target names.
     targets: (T, C, ny, nx) float64 linear targets on the view grid.
     views: {"initial" | "optimized" | "open" | "regular_pinholes": (T, P, C, ny, nx) float64}
         for every target and eyebox position.
     metrics: {variant: {"psnr_db": [per target], "mse": [per target]}} at the nominal position;
-        run_design adds "quantized" and "as_built" when it validates the part, and
+        with the part judged (validation settings) also "quantized" and "as_built", and
         "eye_distribution": the part and the baselines over the eye distribution
         (report.eye_headline: percentiles per variant and target, and the verdict), or None
         when validation did not judge it.
@@ -92,9 +97,13 @@ class DesignResult:
         shows the targets, or without a part): what the device should show.
     timings_s: seconds per stage.
     verdicts: the report's findings ({"topic", "level", "text"}, most important first) when
-        run_design validated the part; empty otherwise.
-    report: report.json's content (plain JSON values) when run_design validated the part: the
-        judged report the sweep tabulates; None otherwise.
+        the part was judged; empty otherwise.
+    part_files: the part's files, file name -> bytes (plate.stl, plate.3mf, ...;
+        empty without a part).
+    report: report.json's content (plain JSON values) when the part was judged (`design`'s
+        validation settings): the report the sweep tabulates; None otherwise.
+    report_files: that report's files, name -> bytes (report.json, report.html, views.npz;
+        empty when not judged).
     """
 
     config: Config
@@ -107,7 +116,9 @@ class DesignResult:
     built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     verdicts: list[dict[str, str]] = field(default_factory=list)
+    part_files: dict[str, bytes] = field(default_factory=dict)
     report: dict[str, Any] | None = None
+    report_files: dict[str, bytes] = field(default_factory=dict)
 
 
 def design(
@@ -116,14 +127,25 @@ def design(
     *,
     names: Sequence[str] | None = None,
     fabrication: FabricationSettings | None = None,
+    validation: ValidationSettings | None = None,
+    formats: Sequence[FormatName] | None = None,
+    command: Sequence[str] | None = None,
     state: dict[str, Any] | None = None,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = False,
+    stage: Callable[[str], None] | None = None,
 ) -> DesignResult:
     """Design a plate for target images (each (3, H, W) linear RGB in [0, 1]); with
-    `fabrication`, designed within what its process can make and made into a part."""
+    `fabrication`, designed within what its process can make, made into a part and its files
+    (`formats`; default every format, STEP only with fabrication.step) and, with `validation`,
+    judged as written (the STL's bytes parsed again): the report's values and files. Nothing
+    is written; `run_design` writes the result. command: what the report says ran it.
+    stage: told each stage after the optimizer as it starts, in words."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
+    if validation is not None and formats is not None and "stl" not in formats:
+        raise ValueError(f"formats = {list(formats)}: the validation judges the part's STL as "
+                         'written; add "stl" to formats, or validation = None.')
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
     scene, settings = config.scene, config.optimizer
     bounds = made = optics = None
@@ -166,7 +188,25 @@ def design(
                                max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE),
                                optics=optics, progress=progress)
         timings["fit_display_s"] = time.perf_counter() - start
-    return DesignResult(config, result, names, targets, views, metrics, part, built, timings)
+    if part is None or fabrication is None:
+        return DesignResult(recorded_config(config, None), result, names, targets, views,
+                            metrics, part, built, timings)
+    announce = stage if stage is not None else (lambda _line: None)
+    formats = tuple(formats) if formats is not None else default_formats(fabrication)
+    announce(f"design: writing {', '.join(formats)} ({part.layout.count} holes)")
+    start = time.perf_counter()
+    files = part_bytes(part, fabrication, formats, progress)
+    timings["export_s"] = time.perf_counter() - start
+    made_part = DesignResult(
+        recorded_config(config, fabrication, formats, part.layout.outline_mm), result, names,
+        targets, views, metrics, part, built, timings, part_files=files)
+    if validation is None:
+        return made_part
+    announce("design: validating the part as written (eye distribution, mesh re-trace, "
+             "tolerances)")
+    checked, evidence = judge_written(made_part, fabrication, validation, files["plate.stl"],
+                                      command)
+    return _with_judgement(made_part, checked, evidence)
 
 
 #: Pupil points of the quick look check_eye_sees_display takes.
@@ -317,17 +357,18 @@ def recorded_config(config: Config, fabrication: FabricationSettings | None,
     return dataclasses.replace(config, part_outline_mm=outline)
 
 
-def _with_judgement(result: DesignResult, checked: Validation, report: dict[str, Any]
+def _with_judgement(result: DesignResult, checked: Validation, evidence: Evidence
                     ) -> DesignResult:
     """The result with the written part's judgement: the headline over the eye distribution
-    and the metrics as built (design.json gives them in this order), the verdicts and the
-    report."""
+    and the metrics as built (design.json gives them in this order), the verdicts, the
+    report and its files."""
+    report = evidence.report
     metrics = {**result.metrics, "eye_distribution": eye_headline(report)}
     for variant in ("quantized", "as_built"):
         per_target = [checked.metrics[variant][name] for name in result.names]
         metrics[variant] = {key: [m[key] for m in per_target] for key in ("mse", "psnr_db")}
     return dataclasses.replace(result, metrics=metrics, verdicts=list(report["verdicts"]),
-                               report=json_ready(report))
+                               report=json_ready(report), report_files=evidence_files(evidence))
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
@@ -354,7 +395,6 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     there are no progress bars). target_options: how the files become targets (--alpha, --fit,
     --frame; aperture_fab.io.images.TargetOptions).
     """
-    announce = stage if stage is not None else (lambda _line: None)
     folder = output_folder(out)
     validated = validations_of(folder)
     if validated and not replace_validated:
@@ -370,35 +410,24 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         inputs["the target options (--alpha, --fit, --frame)"] = sha256(chosen.encode())
     checkpoint = folder / CHECKPOINT_NAME
     state = resume_state(checkpoint, inputs, paths) if resume else None
+    formats = part_formats(out, fabrication) if fabrication is not None else ()
     try:
-        result = design(images, config, names=names, fabrication=fabrication, state=state,
-                        progress=progress,
+        result = design(images, config, names=names, fabrication=fabrication,
+                        validation=validation, formats=formats, command=command, state=state,
+                        progress=progress, stage=stage,
                         on_checkpoint=lambda s: save_checkpoint(folder, s, inputs))
     except Interrupted as stop:
         save_checkpoint(folder, stop.state, inputs)
         raise
-    formats = part_formats(out, fabrication) if fabrication is not None else ()
-    outline = None if result.part is None else result.part.layout.outline_mm
-    result = dataclasses.replace(
-        result, config=recorded_config(config, fabrication, formats, outline))
     staged = on_staged if on_staged is not None else (lambda _stage: None)
     with staging(folder) as stage_folder:
         display_pngs = write_outputs(stage_folder, result)
         staged(stage_folder)
-        if result.part is not None and fabrication is not None:
-            announce(f"design: writing {', '.join(formats)} ({result.part.layout.count} holes)")
-            start = time.perf_counter()
-            written = write_part(stage_folder, result.part, fabrication, formats, progress,
-                                 on_written=staged)
-            result = dataclasses.replace(result, timings_s={
-                **result.timings_s, "export_s": time.perf_counter() - start})
-            if validation is not None:
-                announce("design: validating the part as written (eye distribution, mesh "
-                         "re-trace, tolerances)")
-                checked, evidence = judge_written(result, fabrication, validation,
-                                                  written[stage_folder / "plate.stl"], command)
-                write_evidence(stage_folder, evidence)
-                result = _with_judgement(result, checked, evidence.report)
+        for name, data in result.part_files.items():
+            write_atomic(stage_folder / name, data)
+            staged(stage_folder)
+        for name, data in result.report_files.items():
+            write_atomic(stage_folder / name, data)
         write_summary(stage_folder, result)  # with the figures of the part as written
         staged(stage_folder)
         if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
