@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from aperture_fab.fabrication.layout import HoleLayout, face_webs, layout_stats
 from aperture_fab.fabrication.process import PROCESSES, Process, UnmakeableError, resolve_process
 from aperture_fab.fabrication.quantize import quantize
-from aperture_fab.optics.scene import Plate
+from aperture_fab.optics.scene import Plate, hole_radius_mm, open_fraction_of
 
 TOL = 1e-9
 
@@ -456,3 +456,16 @@ def test_empty_layout_stats() -> None:
     stats = layout_stats(layout)
     assert stats["hole_count"] == 0 and stats["smallest_web_mm"] is None
     assert stats["open_area_fraction"] == 0.0
+
+
+@settings(max_examples=50, deadline=None)
+@given(fraction=st.floats(0, 1), px=st.floats(0.05, 5), py=st.floats(0.05, 5))
+def test_radius_and_open_fraction_invert_each_other(fraction: float, px: float, py: float
+                                                    ) -> None:
+    # One home for a = pi r^2 / (px py): checked against the hole's area directly.
+    radius = float(hole_radius_mm(fraction, (px, py)))
+    assert math.pi * radius * radius == pytest.approx(fraction * px * py, rel=1e-12, abs=1e-300)
+    assert float(open_fraction_of(radius, (px, py))) == pytest.approx(fraction, rel=1e-12,
+                                                                      abs=1e-15)
+    grid = np.full((2, 3), fraction)
+    np.testing.assert_array_equal(hole_radius_mm(grid, (px, py)), radius)  # arrays alike

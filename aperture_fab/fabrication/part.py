@@ -5,7 +5,6 @@ Values in, values out; `aperture_fab.io.formats` turns a part into files.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +18,7 @@ from aperture_fab.fabrication.quantize import made_sizes, quantize
 from aperture_fab.fabrication.rules import open_fraction_bounds
 from aperture_fab.optics.as_made import MadeOptics
 from aperture_fab.optics.leakage import solid_transmission
-from aperture_fab.optics.scene import Plate, Scene
+from aperture_fab.optics.scene import Plate, Scene, hole_radius_mm, open_fraction_of
 
 __all__ = [
     "Part",
@@ -62,8 +61,8 @@ def made_optics(scene: Scene, process: Process, diffraction: bool = True) -> Mad
         from aperture_fab.optics.diffraction import airy_mixture
 
         sizes = made_sizes(scene.plate, process, scene.mid_plane_distance_mm)
-        cell = scene.plate.pitch_mm[0] * scene.plate.pitch_mm[1]
-        d_lo, d_hi = (2 * math.sqrt(level * cell / math.pi) for level in (sizes.lo, sizes.hi))
+        d_lo, d_hi = (2 * float(hole_radius_mm(level, scene.plate.pitch_mm))
+                      for level in (sizes.lo, sizes.hi))
         eye = scene.eye
         mixture = airy_mixture(d_lo, d_hi, eye.view_step, eye.view_pixels)
     return MadeOptics(process.radius_sigma_mm, process.position_sigma_mm,
@@ -90,12 +89,11 @@ def drawn_fractions(open_fraction: np.ndarray, plate: Plate, process: Process) -
     """The open fractions to draw so that the process makes `open_fraction` (rows, cols): each
     open cell's radius less the process's radius bias (made = drawn + bias)."""
     a = np.asarray(open_fraction, dtype=np.float64)
-    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
-    made_r = np.sqrt(np.clip(a, 0, None) * cell / math.pi)
+    made_r = hole_radius_mm(np.clip(a, 0, None), plate.pitch_mm)
     # No wider than the cell: what the bias cannot add there, quantization records.
     drawn_r = np.where(a > 0, np.clip(made_r - process.radius_bias_mm, 0, min(plate.pitch_mm) / 2),
                        0.0)
-    return math.pi * drawn_r**2 / cell
+    return open_fraction_of(drawn_r, plate.pitch_mm)
 
 
 def make_part(open_fraction: np.ndarray, scene: Scene, settings: FabricationSettings) -> Part:

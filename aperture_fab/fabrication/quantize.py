@@ -50,7 +50,7 @@ from aperture_fab.fabrication.rules import (
     radius_range,
     resolve_margin_mm,
 )
-from aperture_fab.optics.scene import Plate
+from aperture_fab.optics.scene import Plate, open_fraction_of
 
 __all__ = ["MadeSizes", "made_sizes", "quantize"]
 
@@ -135,7 +135,7 @@ def _clip_loss(a: np.ndarray, process: Process, plate: Plate, scale: float) -> f
     r_lo, r_hi = hole_radius_bounds(process, plate, scale)
     if r_hi < r_lo:
         return 1.0
-    a_hi = math.pi * r_hi**2 / (px * py)
+    a_hi = float(open_fraction_of(r_hi, (px, py)))
     return float(np.maximum(a - a_hi, 0.0).sum()) / total
 
 

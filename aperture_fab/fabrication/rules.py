@@ -22,7 +22,7 @@ import numpy as np
 
 from aperture_fab.fabrication.layout import HoleLayout, Violation, face_webs
 from aperture_fab.fabrication.process import PROCESSES, Process, UnmakeableError
-from aperture_fab.optics.scene import Plate
+from aperture_fab.optics.scene import Plate, open_fraction_of
 
 __all__ = [
     "RadiusRange",
@@ -88,8 +88,8 @@ def open_fraction_bounds(process: Process, plate: Plate) -> tuple[float, float]:
     r_min, r_max = hole_radius_bounds(process, plate)
     if r_max < r_min:
         return 0.0, 0.0
-    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
-    return math.pi * r_min**2 / cell, math.pi * r_max**2 / cell
+    return (float(open_fraction_of(r_min, plate.pitch_mm)),
+            float(open_fraction_of(r_max, plate.pitch_mm)))
 
 
 @dataclass(frozen=True)

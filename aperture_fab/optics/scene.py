@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -31,6 +31,8 @@ __all__ = [
     "Scene",
     "display_fov_deg",
     "eyebox_margin_mm",
+    "hole_radius_mm",
+    "open_fraction_of",
 ]
 
 HoleAxis = Literal["straight", "chief_ray"]
@@ -183,6 +185,20 @@ class Display:
         return xs, ys
 
 
+def hole_radius_mm(open_fraction: Any, pitch_mm: tuple[float, float]) -> np.ndarray:
+    """Radius (mm) of the round hole whose area is `open_fraction` of a px x py cell,
+    a = pi r^2 / (px py); arrays or scalars (float64). The one home of this conversion for
+    values; the differentiable renderer keeps its own gradient-safe torch form."""
+    return np.sqrt(np.asarray(open_fraction, dtype=np.float64) * (pitch_mm[0] * pitch_mm[1])
+                   / math.pi)
+
+
+def open_fraction_of(radius_mm: Any, pitch_mm: tuple[float, float]) -> np.ndarray:
+    """Open-area fraction of a px x py cell holding a round hole of `radius_mm` (mm),
+    pi r^2 / (px py); arrays or scalars (float64). The inverse of `hole_radius_mm`."""
+    return math.pi * np.asarray(radius_mm, dtype=np.float64) ** 2 / (pitch_mm[0] * pitch_mm[1])
+
+
 @dataclass(frozen=True)
 class Plate:
     """A plate of cells, each with one circular through-hole, centred on the axis.
@@ -237,7 +253,7 @@ class Plate:
     @property
     def max_open_fraction(self) -> float:
         """Open-area fraction of the largest hole that fits its cell."""
-        return math.pi * self.max_radius_mm**2 / (self.pitch_mm[0] * self.pitch_mm[1])
+        return float(open_fraction_of(self.max_radius_mm, self.pitch_mm))
 
     def cell_centres_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """Cell centres: columns (nx,) and rows (ny,) in mm, float64; row 0 is the top (+y)."""
@@ -245,10 +261,6 @@ class Plate:
         xs = (np.arange(self.cells[0]) - (self.cells[0] - 1) / 2) * px
         ys = ((self.cells[1] - 1) / 2 - np.arange(self.cells[1])) * py
         return xs, ys
-
-    def radii_mm(self, open_fraction: np.ndarray) -> np.ndarray:
-        """Hole radii (ny, nx) mm for open-area fractions (ny, nx): a = pi r^2 / (px py)."""
-        return np.sqrt(np.asarray(open_fraction) * self.pitch_mm[0] * self.pitch_mm[1] / math.pi)
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from aperture_fab.optics.as_made import MadeOptics, draw_errors, made_views, whi
 from aperture_fab.optics.baselines import PinholeArray, elemental_display
 from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.scene import Scene, hole_radius_mm
 from aperture_fab.optimize.optimizer import fit_display
 
 __all__ = ["MadeQuality", "RegularArray", "RegularFront", "judge_made", "regular_arrays",
@@ -126,7 +126,6 @@ def regular_arrays(scene: Scene, sizes: MadeSizes, max_pitch_mm: float = MAX_REG
     made sizes from the smallest to the largest (the process's own steps when it has few)."""
     plate = scene.plate
     pitch = max(plate.pitch_mm)
-    cell = plate.pitch_mm[0] * plate.pitch_mm[1]
     if sizes.levels is not None and len(sizes.levels) - 1 <= count:
         levels = np.asarray(sizes.levels[1:])
     elif sizes.levels is not None:
@@ -142,7 +141,7 @@ def regular_arrays(scene: Scene, sizes: MadeSizes, max_pitch_mm: float = MAX_REG
         cols = (np.arange(ncx) - origin[1]) % step == 0
         lattice = rows[:, None] & cols[None, :]
         for level in levels:
-            diameter = 2 * math.sqrt(level * cell / math.pi)
+            diameter = 2 * float(hole_radius_mm(level, plate.pitch_mm))
             a = np.where(lattice, level, 0.0)
             out.append(RegularArray(PinholeArray(a, step, origin, diameter), step * pitch))
     return out

@@ -67,7 +67,7 @@ from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
-from aperture_fab.optics.scene import Eye, Plate, Scene
+from aperture_fab.optics.scene import Eye, Plate, Scene, open_fraction_of
 from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
@@ -103,10 +103,9 @@ class Validation:
 def layout_fractions(layout: HoleLayout, bias_mm: float = 0.0) -> np.ndarray:
     """Open-area fraction per cell (rows, cols) of the holes as made (radius + bias, >= 0)."""
     nx, ny = layout.grid
-    px, py = layout.pitch_mm
     a = np.zeros((ny, nx))
     radii = np.clip(layout.radii_mm + bias_mm, 0, None)
-    a[layout.cells[:, 0], layout.cells[:, 1]] = math.pi * radii**2 / (px * py)
+    a[layout.cells[:, 0], layout.cells[:, 1]] = open_fraction_of(radii, layout.pitch_mm)
     return a
 
 
