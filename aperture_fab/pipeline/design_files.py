@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult
     from aperture_fab.report.evidence import Evidence
 
-__all__ = ["default_formats", "evidence_files", "judge_written", "part_bytes", "part_formats",
+__all__ = ["evidence_files", "judge_written", "part_bytes", "part_formats",
            "write_outputs", "write_part", "write_summary"]
 
 
@@ -62,15 +62,13 @@ def evidence_files(evidence: Evidence) -> dict[str, bytes]:
             "report.json": report_json(evidence.report).encode()}
 
 
-def part_formats(out: Path, fabrication: FabricationSettings) -> tuple[FormatName, ...]:
-    """Every format; STEP (slow) only when asked for, by --step or an --out that names it."""
-    step = fabrication.step or out.suffix.lower() in PART_FORMATS["step"].suffixes
+def part_formats(fabrication: FabricationSettings, out: Path | None = None
+                 ) -> tuple[FormatName, ...]:
+    """Every format; STEP (slow) only when asked for, by fabrication.step (--step) or an `out`
+    that names a STEP file."""
+    step = fabrication.step or (out is not None
+                                and out.suffix.lower() in PART_FORMATS["step"].suffixes)
     return tuple(name for name in PART_FORMATS if name != "step" or step)
-
-
-def default_formats(fabrication: FabricationSettings) -> tuple[FormatName, ...]:
-    """Every format; STEP (slow) only with fabrication.step."""
-    return tuple(name for name in PART_FORMATS if name != "step" or fabrication.step)
 
 
 def part_bytes(part: Part, fabrication: FabricationSettings,

@@ -50,7 +50,6 @@ from aperture_fab.pipeline.checkpoint import (
     sha256,
 )
 from aperture_fab.pipeline.design_files import (
-    default_formats,
     evidence_files,
     judge_written,
     part_bytes,
@@ -192,7 +191,7 @@ def design(
         return DesignResult(recorded_config(config, None), result, names, targets, views,
                             metrics, part, built, timings)
     announce = stage if stage is not None else (lambda _line: None)
-    formats = tuple(formats) if formats is not None else default_formats(fabrication)
+    formats = tuple(formats) if formats is not None else part_formats(fabrication)
     announce(f"design: writing {', '.join(formats)} ({part.layout.count} holes)")
     start = time.perf_counter()
     files = part_bytes(part, fabrication, formats, progress)
@@ -410,7 +409,7 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         inputs["the target options (--alpha, --fit, --frame)"] = sha256(chosen.encode())
     checkpoint = folder / CHECKPOINT_NAME
     state = resume_state(checkpoint, inputs, paths) if resume else None
-    formats = part_formats(out, fabrication) if fabrication is not None else ()
+    formats = part_formats(fabrication, out) if fabrication is not None else ()
     try:
         result = design(images, config, names=names, fabrication=fabrication,
                         validation=validation, formats=formats, command=command, state=state,
