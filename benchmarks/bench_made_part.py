@@ -94,7 +94,7 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     block = made_part_block(scene, config.optimizer, targets, made, shown, process,
                             states=args.states, copies=args.copies, rivals=args.rivals,
                             fit_iterations=args.fit_iterations, family_states=args.front_states)
-    tolerance = tolerance_analysis(config, targets, [torch.as_tensor(shown[0])],
+    tolerance = tolerance_analysis(config.scene, targets, [torch.as_tensor(shown[0])],
                                    result.part.layout, process,
                                    ValidationSettings(tolerance_samples=args.tolerance_samples),
                                    None,

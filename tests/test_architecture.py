@@ -172,3 +172,23 @@ def test_the_circle_finder_sees_circles_through_functions_but_not_type_checking(
                                   "    from pkg.e import x\n")
     (package / "e.py").write_text("from pkg.d import y\n")
     assert import_circles(package) == [["pkg.a", "pkg.b", "pkg.c"]]
+
+
+#: The functions a design run may hand the whole config to (tools/config_stops.py, measured
+#: 2026-11-28: 10 stops; 22 before issue 19): the stages below take what they need from it.
+CONFIG_STOPS_MAX = 10
+
+
+@pytest.mark.slow
+def test_the_config_stops_at_few_functions(tmp_path: Path, marker_png: Path) -> None:
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "config_stops", PACKAGE.parent / "tools" / "config_stops.py")
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    config_calls, settings_calls = tool.trace_design(marker_png, tmp_path / "out")
+    assert "pipeline/design_job.py:run_design" in config_calls  # the trace saw the run
+    assert settings_calls  # and the stages that take their own settings
+    assert len(config_calls) <= CONFIG_STOPS_MAX, sorted(config_calls)

@@ -76,7 +76,7 @@ def view_box(svg: ET.Element) -> tuple[float, float, float, float]:
 @pytest.fixture(scope="module")
 def sheet(designed: Path) -> str:
     loaded = load_design_part(designed)
-    return assembly_html(loaded.part, loaded.config, loaded.fabrication.process, loaded.names,
+    return assembly_html(loaded.part, loaded.config.scene, loaded.fabrication.process, loaded.names,
                          design_name="tiny")
 
 
@@ -203,7 +203,7 @@ def test_a_config_of_another_plate_is_refused(designed: Path) -> None:
     loaded = load_design_part(designed)
     other = resolve("near-eye-nominal")
     with pytest.raises(ValueError, match=r"plate\.cells"):
-        assembly_html(loaded.part, other, loaded.fabrication.process, loaded.names)
+        assembly_html(loaded.part, other.scene, loaded.fabrication.process, loaded.names)
 
 
 def test_plate_geometry_is_the_part_as_built(designed: Path) -> None:

@@ -29,6 +29,7 @@ fast flags, or add it to EXAMPLES with the reason. The test ids are FILE:LINE.
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import shlex
@@ -355,8 +356,9 @@ def test_the_readme_in_memory_example_runs(tmp_path: Path, monkeypatch: pytest.M
 
     checked = check_mesh(read_stl(made.part_files["plate.stl"]))  # the bytes are the part
     assert checked.watertight and checked.genus == made.part.layout.count > 0
-    assert made.verdicts and made.verdicts == made.report["verdicts"]
+    assert made.verdicts and made.verdicts == made.report.verdicts
     assert set(made.report_files) == {"report.json", "report.html", "views.npz"}
+    assert json.loads(made.report_files["report.json"]) == made.report.as_json()
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 

@@ -17,10 +17,10 @@ from conftest import tiny_config
 from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.fabrication.process import PROCESSES, Process, process_summary, resolve_process
 from aperture_fab.io.images import encode_png
-from aperture_fab.report.evidence import light_block, run_block
 from aperture_fab.report.page import report_html
 from aperture_fab.report.sections import png_size
 from aperture_fab.validation.formatting import config_rows, label, percent, quantity, sig
+from aperture_fab.validation.judge import light_block, run_block
 from aperture_fab.validation.light import (
     LEAKAGE_WARN_SHARE,
     content_level,
@@ -28,9 +28,9 @@ from aperture_fab.validation.light import (
     light_verdict,
     photometry_block,
 )
-from aperture_fab.validation.report import build_report, report_json, validate_report
+from aperture_fab.validation.report import Report, build_report, report_json, validate_report
 from aperture_fab.validation.verdicts import overall_level, verdicts
-from tests.test_report import complete_inputs
+from tests.test_report import complete_inputs, judged
 
 #: The near-eye preset's field of view (deg) and the issue's example: 0.16 % of a 500 cd/m2
 #: panel showing full white.
@@ -154,10 +154,10 @@ def test_a_black_view_leaks_without_bound_and_json_says_null() -> None:
     found = block(efficiency=0.0)
     assert math.isinf(found["leakage"]["leakage_share"])
     inputs = complete_inputs()
-    report = build_report(**inputs, photometry=found)
+    report = build_report(**inputs, photometry=found).as_json()
     assert report["photometry"]["leakage"]["leakage_share"] is None
     assert contrast_verdict(report["photometry"]).level == "warn"
-    json.loads(report_json(report))
+    json.loads(report_json(Report.from_json(report)))
 
 
 def test_content_level_weights_rgb_by_luminance() -> None:
@@ -178,7 +178,7 @@ def test_content_level_weights_rgb_by_luminance() -> None:
 def test_the_photometry_and_run_blocks_are_checked() -> None:
     run = run_block("plate.stl", "resin", ["aperture-fab", "design", "a b.png"], DATE)
     assert run["command"] == "aperture-fab design 'a b.png'"
-    report = build_report(**complete_inputs(), photometry=block(), run=run)
+    report = build_report(**complete_inputs(), photometry=block(), run=run).as_json()
     validate_report(report)
     assert list(report)[:2] == ["schema_version", "run"]
     for path, value, error in ((("photometry", "regime"), "dim", ValueError),
@@ -214,7 +214,8 @@ def test_the_verdicts_judge_tolerance_light_and_contrast() -> None:
     assert found["tolerance"].level == "fail" and found["tolerance"].fixes
     assert found["light"].level == "fail"
     assert found["contrast"].level == "warn"
-    assert not any("The eye sees" in v.text for v in verdicts(report))  # the light verdict says it
+    # the light verdict says it
+    assert not any("The eye sees" in v.text for v in verdicts(report))
     assert overall_level(list(found.values())) == "fail"
 
 
@@ -290,10 +291,9 @@ def test_the_config_is_a_compact_table() -> None:
 
 def test_the_page_leads_with_the_verdict_and_shows_light_display_and_header() -> None:
     run = run_block("plate.stl", "resin", ["aperture-fab", "design", "x.png"], DATE)
-    report = build_report(**complete_inputs(), photometry=block(od=2.0), run=run)
-    lines = verdicts(report)
+    report = build_report(**complete_inputs(), photometry=block(od=2.0), run=run).as_json()
     display = encode_png(np.random.default_rng(0).uniform(0, 1, (3, 24, 40)))
-    page = report_html(report, {}, lines, {"letter": display})
+    page = report_html(judged(report), {}, {"letter": display})
     header = page[:page.index("<nav>")]
     assert "Validation report: plate.stl" in header and "<b>resin</b>" in header
     assert "2025-01-02T03:04:05Z" in header and "<code>aperture-fab design x.png</code>" in header
@@ -314,4 +314,4 @@ def test_the_page_leads_with_the_verdict_and_shows_light_display_and_header() ->
     config = page[page.index('<section id="config">'):]
     assert "<th>section</th><th>key</th><th>value</th>" in config and "<pre>" not in config
     with pytest.raises(ValueError, match="not PNG"):
-        report_html(report, {}, lines, {"letter": b"GIF89a"})
+        report_html(judged(report), {}, {"letter": b"GIF89a"})

@@ -10,6 +10,8 @@ import json
 import math
 import re
 import subprocess
+from collections.abc import Mapping
+from dataclasses import replace
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
@@ -44,6 +46,8 @@ from aperture_fab.validation.report import (
     FIGURE_KEYS,
     REPORT_VARIANTS,
     SCHEMA_VERSION,
+    Report,
+    Verdict,
     build_report,
     report_json,
     scene_dict,
@@ -51,6 +55,14 @@ from aperture_fab.validation.report import (
     views_npz,
 )
 from aperture_fab.validation.verdicts import FixPlan, fix_plan, verdicts
+
+
+def judged(data: Mapping[str, Any], *args: Any) -> Report:
+    """report.json's structure read back as a Report, judged: its verdicts computed (args:
+    the verdicts' diffraction figures), as aperture_fab.validation.judge.judge does."""
+    report = Report.from_json(data)
+    return replace(report, verdicts=tuple(verdicts(report, *args)))
+
 
 #: PSNR (dB) by variant for the fabricated report; the verdict tests derive their numbers from it.
 PSNR = {"open": 21.4, "regular_pinholes": 25.1, "random": 18.0, "optimized": 31.8,
@@ -145,7 +157,7 @@ def made_block(count: int = len(TARGETS)) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def report() -> dict[str, Any]:
-    return build_report(**complete_inputs())
+    return build_report(**complete_inputs()).as_json()
 
 
 def png_size(data: bytes) -> tuple[int, int]:
@@ -187,18 +199,18 @@ def test_nan_becomes_null_and_mean_is_null() -> None:
     inputs = complete_inputs()
     inputs["metrics"]["open"]["letter"]["ssim"] = math.nan
     inputs["timings_s"]["mesh"] = math.inf
-    built = build_report(**inputs)
+    built = build_report(**inputs).as_json()
     assert built["metrics"]["open"]["per_target"]["letter"]["ssim"] is None
     assert built["metrics"]["open"]["mean"]["ssim"] is None
     assert built["metrics"]["open"]["mean"]["psnr_db"] == pytest.approx(PSNR["open"])
     assert built["timings_s"]["mesh"] is None
-    text = report_json(built)
+    text = report_json(Report.from_json(built))
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == built
 
 
 def test_json_round_trip(report: dict[str, Any]) -> None:
-    text = report_json(report)
+    text = report_json(Report.from_json(report))
     assert json.loads(text) == report
     assert text.startswith('{\n  "schema_version": 3,\n  "eye_distribution": {')
 
@@ -209,8 +221,8 @@ def test_json_round_trip_any_metric_values(values: list[float]) -> None:
     """Any float survives as itself, or as null when JSON cannot hold it."""
     inputs = complete_inputs()
     inputs["metrics"] = {"as_built": {"only": dict(zip(METRIC_KEYS, values, strict=True))}}
-    built = build_report(**inputs)
-    again = json.loads(report_json(built))
+    built = build_report(**inputs).as_json()
+    again = json.loads(report_json(Report.from_json(built)))
     assert again == built
     expected = [v if math.isfinite(v) else None for v in values]
     assert list(again["metrics"]["as_built"]["per_target"]["only"].values()) == expected
@@ -314,15 +326,15 @@ def test_build_report_rejects_bad_metrics() -> None:
     inputs = complete_inputs()
     del inputs["metrics"]["as_built"]["grid"]["ssim"]
     with pytest.raises(ValueError, match=r"metrics\.as_built\.per_target\.grid\.ssim"):
-        build_report(**inputs)
+        build_report(**inputs).as_json()
     inputs = complete_inputs()
     inputs["metrics"]["ideal"] = inputs["metrics"]["open"]
     with pytest.raises(ValueError, match="ideal"):
-        build_report(**inputs)
+        build_report(**inputs).as_json()
     inputs = complete_inputs()
     inputs["config"] = {"when": object()}
     with pytest.raises(TypeError, match=r"config\.when"):
-        build_report(**inputs)
+        build_report(**inputs).as_json()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -470,7 +482,7 @@ def test_figure_errors() -> None:
 
 
 def texts(report: dict[str, Any], *args: Any) -> list[str]:
-    return [v.text for v in verdicts(report, *args)]
+    return [v.text for v in verdicts(Report.from_json(report), *args)]
 
 
 def test_the_tolerance_verdict_states_the_gap_scale(report: dict[str, Any]) -> None:
@@ -478,15 +490,15 @@ def test_the_tolerance_verdict_states_the_gap_scale(report: dict[str, Any]) -> N
     size error; an older one (no gap_scale_sigma_percent) reads as before."""
     scaled = copy.deepcopy(report)
     scaled["tolerance"].update(gap_scale_sigma_percent=1.0, gap_sigma_mm=0.1)
-    found = next(v for v in verdicts(scaled) if v.topic == "tolerance")
+    found = next(v for v in verdicts(Report.from_json(scaled)) if v.topic == "tolerance")
     assert ("A gap error scales the picture (1.0 % at its 1 sigma, 0.1 mm) and does not blur "
             "it: each part is judged at its picture's size") in found.text
-    older = next(v for v in verdicts(report) if v.topic == "tolerance")
+    older = next(v for v in verdicts(Report.from_json(report)) if v.topic == "tolerance")
     assert "gap error" not in older.text
 
 
 def test_verdicts_hand_written(report: dict[str, Any]) -> None:
-    found = verdicts(report, diffraction_blur_px=1.34)
+    found = verdicts(Report.from_json(report), diffraction_blur_px=1.34)
     lines = [v.text for v in found]
     # The eye distribution leads, the tolerance yield follows, then the nominal eye point.
     assert [v.topic for v in found[:3]] == ["eye distribution", "tolerance", "nominal"]
@@ -526,7 +538,7 @@ def test_verdicts_without_as_built_and_with_worse_results(report: dict[str, Any]
     partial["eye_distribution"] = None
     partial["fabrication"]["violations"] = []
     partial["mesh"]["watertight"] = False
-    found = verdicts(partial)
+    found = verdicts(Report.from_json(partial))
     lines = [v.text for v in found]
     assert found[0].topic == "eye distribution" and found[0].level == "info"
     assert lines[0].startswith("Not judged over the eye distribution (validation.eye_states = "
@@ -568,11 +580,11 @@ def failing_report(changes: dict[str, Any]) -> dict[str, Any]:
     inputs["fabrication"]["process"] = config["process"]["name"]
     floor = float(config["optimizer"]["min_efficiency"])
     photometry = photometry_block(settings=PhotometrySettings(), min_efficiency=floor, **DIM)
-    return build_report(**inputs, made_part=made, photometry=photometry)
+    return build_report(**inputs, made_part=made, photometry=photometry).as_json()
 
 
 def all_fixes(report: dict[str, Any]) -> list[str]:
-    return [fix for verdict in verdicts(report) for fix in verdict.fixes]
+    return [fix for verdict in verdicts(Report.from_json(report)) for fix in verdict.fixes]
 
 
 #: (what the design already does, the config that does it, the config that does not, a fix
@@ -602,7 +614,7 @@ def test_no_fix_the_design_already_applied_is_proposed(applied: dict[str, Any],
     assert proposes(failing_report(not_applied))
     done = failing_report(applied)
     assert not proposes(done)
-    page = report_html(done, {}, verdicts(done))
+    page = report_html(judged(done), {})
     assert html_escaped(fix).lower() not in page.lower()
 
 
@@ -614,7 +626,7 @@ def test_the_default_designs_fixes_leave_out_everything_it_does() -> None:
     fixes = all_fixes(report)
     for _, _, _, fix in APPLIED[:1] + APPLIED[2:]:
         assert not any(fix.lower() in f.lower() for f in fixes), fix
-    acting = [v for v in verdicts(report) if v.level in ("fail", "warn")]
+    acting = [v for v in verdicts(Report.from_json(report)) if v.level in ("fail", "warn")]
     assert {v.topic for v in acting} == {"eye distribution", "made part", "tolerance", "light",
                                          "contrast"}
     assert all(v.fixes for v in acting)
@@ -623,7 +635,7 @@ def test_the_default_designs_fixes_leave_out_everything_it_does() -> None:
 
 def test_the_page_recommends_one_fix_first_then_lists_the_others() -> None:
     report = failing_report({"optimizer.eye_states": 8})
-    lines = verdicts(report)
+    lines = verdicts(Report.from_json(report))
     plan = fix_plan(lines)
     # the deciding verdict: the first failing one, the eye distribution; its first fix
     assert plan.deciding is lines[0] and lines[0].level == "fail"
@@ -634,7 +646,7 @@ def test_the_page_recommends_one_fix_first_then_lists_the_others() -> None:
     assert set(others) | {plan.recommended} == {f for v in lines for f in v.fixes}
     # the tracked display, proposed for two checks, is listed once
     assert sum("tracked" in fix for fix in others) == 1
-    page = report_html(report, {}, lines)
+    page = report_html(judged(report), {})
     verdict = page[page.index('<section id="verdict">'):page.index('<section id="made">')]
     recommended = verdict.index('id="recommended-fix"')
     assert recommended < verdict.index('class="verdict verdict-') < verdict.index(
@@ -647,9 +659,9 @@ def test_the_page_recommends_one_fix_first_then_lists_the_others() -> None:
 
 
 def test_a_passing_report_recommends_nothing(report: dict[str, Any]) -> None:
-    lines = verdicts(report)
+    lines = verdicts(Report.from_json(report))
     assert fix_plan(lines) == FixPlan(None, None, ())
-    page = report_html(report, {}, lines)
+    page = report_html(judged(report), {})
     assert 'id="recommended-fix"' not in page and 'id="other-fixes"' not in page
 
 
@@ -715,12 +727,12 @@ def all_figures() -> dict[str, bytes]:
 @pytest.fixture(scope="module")
 def evil_report() -> dict[str, Any]:
     """A complete report whose second target is named like a script."""
-    return build_report(**complete_inputs(("letter", EVIL)), made_part=made_block(2))
+    return build_report(**complete_inputs(("letter", EVIL)), made_part=made_block(2)).as_json()
 
 
 def test_html_sections_and_images(evil_report: dict[str, Any]) -> None:
     figures = all_figures()
-    page = report_html(evil_report, figures, verdicts(evil_report, 1.3))
+    page = report_html(judged(evil_report, 1.3), figures)
     parser = PageParser()
     parser.feed(page)
     for _, heading in SECTION_TITLES:
@@ -754,7 +766,8 @@ def test_html_escapes_names(evil_report: dict[str, Any]) -> None:
     inputs = complete_inputs(("letter", EVIL))
     inputs["fabrication"]["violations"][0]["resolution"] = "<b>closed</b> & done"
     inputs["config"]["notes"] = "</pre><img src=x onerror=alert(1)>"
-    page = report_html(build_report(**inputs), {}, [f"verdict with {EVIL}"])
+    page = report_html(replace(build_report(**inputs),
+                               verdicts=(Verdict("", "info", f"verdict with {EVIL}"),)), {})
     assert "<script" not in page
     assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
     assert html_escaped(EVIL) in page
@@ -770,7 +783,8 @@ def html_escaped(text: str) -> str:
 
 
 def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
-    page = report_html({**report, "tolerance": None}, {"loss": figure_loss(np.ones(3))}, [])
+    page = report_html(Report.from_json({**report, "tolerance": None}),
+                       {"loss": figure_loss(np.ones(3))})
     parser = PageParser()
     parser.feed(page)
     assert len(parser.images) == 1
@@ -786,11 +800,11 @@ def test_html_missing_figures_say_not_computed(report: dict[str, Any]) -> None:
 
 def test_html_rejects_bad_figures(report: dict[str, Any]) -> None:
     with pytest.raises(ValueError, match="not one the page places"):
-        report_html(report, {"lossy": figure_loss(np.ones(3))}, [])
+        report_html(Report.from_json(report), {"lossy": figure_loss(np.ones(3))})
     with pytest.raises(ValueError, match="not PNG"):
-        report_html(report, {"loss": b"GIF89a"}, [])
+        report_html(Report.from_json(report), {"loss": b"GIF89a"})
     with pytest.raises(ValueError, match="missing"):
-        report_html({k: v for k, v in report.items() if k != "mesh"}, {}, [])
+        Report.from_json({k: v for k, v in report.items() if k != "mesh"})
 
 
 #: Appended by the browser test only: counts the images that decoded once the page has loaded,
@@ -864,7 +878,7 @@ def test_html_renders_in_headless_chromium(evil_report: dict[str, Any], tmp_path
     figures = all_figures()
     if broken:  # a PNG signature over garbage: the browser must fail to decode exactly that one
         figures["loss"] = figures["loss"][:8] + b"x" * 300
-    page = report_html(evil_report, figures, verdicts(evil_report))
+    page = report_html(judged(evil_report), figures)
     ok, total = chromium_image_counts(page, tmp_path)
     assert total == len(FIGURE_KEYS)
     assert ok == total - broken

@@ -12,11 +12,14 @@ import pytest
 
 from aperture_fab.cli.output import print_eye_distribution
 from aperture_fab.optics.eyes import EyeDistribution
-from aperture_fab.report.evidence import eye_distribution_block, eye_figures
+from aperture_fab.report.evidence import eye_figures
 from aperture_fab.report.page import report_html
+from aperture_fab.validation.judge import eye_distribution_block
 from aperture_fab.validation.report import (
     EYE_TOPIC,
     FIGURE_KEYS,
+    Report,
+    Verdict,
     build_report,
     eye_headline,
     report_json,
@@ -24,7 +27,7 @@ from aperture_fab.validation.report import (
 )
 from aperture_fab.validation.robustness import EyeQuality, grid_offsets
 from aperture_fab.validation.verdicts import EYE_MARGIN_DB, eye_verdict, verdicts
-from tests.test_report import all_figures, complete_inputs, made_block
+from tests.test_report import all_figures, complete_inputs, judged, made_block
 
 NAMES = ("letter",)
 STATES = 8
@@ -72,10 +75,20 @@ def report_for(eyes: EyeQuality | None, names: tuple[str, ...] = NAMES) -> dict[
     targets = np.random.default_rng(1).uniform(0, 1, (len(names), 1, 6, 6))
     inputs["eye_distribution"] = (None if eyes is None
                                   else eye_distribution_block(eyes, names, targets))
-    report = build_report(**inputs)
-    report["verdicts"] = [v.as_dict() for v in verdicts(report)]
+    report = build_report(**inputs).as_json()
+    report["verdicts"] = [v.as_dict() for v in verdicts(Report.from_json(report))]
     validate_report(report)
     return report
+
+
+def judged_for(eyes: EyeQuality | None, names: tuple[str, ...] = NAMES) -> Report:
+    """`report_for`'s report as a value."""
+    return Report.from_json(report_for(eyes, names))
+
+
+def headline(report: dict[str, Any]) -> dict[str, Any]:
+    """design.json's metrics with the report's eye-distribution headline."""
+    return {"eye_distribution": eye_headline(Report.from_json(report))}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -85,7 +98,7 @@ def report_for(eyes: EyeQuality | None, names: tuple[str, ...] = NAMES) -> dict[
 def test_red_when_the_parts_10th_percentile_is_below_the_open_displays() -> None:
     report = report_for(synthetic_eyes(OPEN_DB - 1.5))
     report["config"]["optimizer"]["eye_states"] = 8  # designed for the distribution already
-    verdict = eye_verdict(report)
+    verdict = eye_verdict(Report.from_json(report))
     assert verdict.topic == EYE_TOPIC and verdict.level == "fail"
     p10 = report["eye_distribution"]["variants"]["as_built"]["psnr_db"]["p10"][0]
     open_p10 = report["eye_distribution"]["variants"]["open"]["psnr_db"]["p10"][0]
@@ -104,12 +117,12 @@ def test_red_when_the_parts_10th_percentile_is_below_the_open_displays() -> None
         assert advice in fixes and advice not in text, advice
     assert verdict.fixes[0].startswith("Design again with a smaller pitch")
     assert not any("eye_states" in f for f in verdict.fixes)  # already > 1
-    assert verdicts(report)[0] == verdict  # it leads
+    assert verdicts(Report.from_json(report))[0] == verdict  # it leads
 
 
 def test_red_below_the_regular_pinholes_for_one_target_of_two() -> None:
     eyes = synthetic_eyes([BEST_DB + 5, PINHOLES_DB - 0.3], targets=2)  # above the open one
-    verdict = eye_verdict(report_for(eyes, ("letter", "grid")))
+    verdict = eye_verdict(judged_for(eyes, ("letter", "grid")))
     assert verdict.level == "fail"
     assert "for target 'grid'" in verdict.text
     assert "below that of the regular pinhole array:" in verdict.text
@@ -117,10 +130,10 @@ def test_red_below_the_regular_pinholes_for_one_target_of_two() -> None:
 
 
 def test_amber_within_a_db_and_green_above() -> None:
-    close = eye_verdict(report_for(synthetic_eyes(BEST_DB + EYE_MARGIN_DB / 2)))
+    close = eye_verdict(judged_for(synthetic_eyes(BEST_DB + EYE_MARGIN_DB / 2)))
     assert close.level == "warn"
     assert "Less than 1 dB above a baseline" in close.text and close.fixes
-    good = eye_verdict(report_for(synthetic_eyes(BEST_DB + 4)))
+    good = eye_verdict(judged_for(synthetic_eyes(BEST_DB + 4)))
     assert good.level == "pass"
     assert good.fixes == ()
     assert "(+6.0 dB)" in good.text and "(+4.0 dB)" in good.text
@@ -129,19 +142,21 @@ def test_amber_within_a_db_and_green_above() -> None:
 def test_a_nominal_point_design_is_told_to_design_for_the_distribution() -> None:
     report = report_for(synthetic_eyes(OPEN_DB - 1))
     report["config"]["optimizer"]["eye_states"] = 1
-    assert "optimizer.eye_states > 1" in eye_verdict(report).fixes[0]  # recommended first
+    # recommended first
+    assert "optimizer.eye_states > 1" in eye_verdict(Report.from_json(report)).fixes[0]
     report["config"]["optimizer"]["tracking"] = "tracked"
-    assert not any("tracked" in f for f in eye_verdict(report).fixes)  # already tracked
+    # already tracked
+    assert not any("tracked" in f for f in eye_verdict(Report.from_json(report)).fixes)
 
 
 def test_not_judged_falls_back_to_the_nominal_figures_with_a_note() -> None:
     report = report_for(None)
     assert report["eye_distribution"] is None
-    verdict = eye_verdict(report)
+    verdict = eye_verdict(Report.from_json(report))
     assert verdict.level == "info" and "validation.eye_states = 0" in verdict.text
     assert report["verdicts"][0]["topic"] == EYE_TOPIC
-    assert eye_headline(report) is None
-    page = report_html(report, {}, verdicts(report))
+    assert eye_headline(Report.from_json(report)) is None
+    page = report_html(judged(report), {})
     lead = page[page.index('<section id="eyes">'):page.index('<section id="views">')]
     assert "PSNR nominal (dB), mean over targets" in lead and "NOTE" in lead
     assert "validation.eye_states = 0" in page[:page.index('<section id="eyes">')]
@@ -154,7 +169,7 @@ def test_not_judged_falls_back_to_the_nominal_figures_with_a_note() -> None:
 
 def test_report_json_round_trips_through_the_schema_check() -> None:
     report = report_for(synthetic_eyes(BEST_DB + 3))
-    text = report_json(report)
+    text = report_json(Report.from_json(report))
     again = json.loads(text)
     assert again == report
     validate_report(again)
@@ -176,7 +191,7 @@ def test_report_json_round_trips_through_the_schema_check() -> None:
     assert block["pupil"]["pupil_mm"] == [3.0, 4.0, 5.0, 6.0]
     assert len(block["focus"]["psnr_db"]["open"][0]) == 3
     assert len(block["thumbnails"]["psnr_db"][0]) == 4
-    headline = eye_headline(again)
+    headline = eye_headline(Report.from_json(again))
     assert headline is not None and headline["verdict"]["level"] == "pass"
     assert "eyebox_map" not in headline and headline["variants"] == block["variants"]
 
@@ -225,7 +240,7 @@ def test_html_leads_with_the_eye_distribution_table_and_figures() -> None:
     targets = np.random.default_rng(1).uniform(0, 1, (1, 1, 6, 6))
     figures = eye_figures(eyes, NAMES, targets)
     assert set(figures) == {"eye_map", "eye_pupil", "eye_focus", "eye_thumbnails"}
-    page = report_html(report, figures, verdicts(report))
+    page = report_html(judged(report), figures)
     lead = Lead()
     lead.feed(page)
     assert lead.sections[:4] == ["verdict", "made", "light", "eyes"]
@@ -257,7 +272,7 @@ def test_html_with_every_figure_has_one_image_per_figure_key() -> None:
     report = {**report_for(eyes), "made_part": made_block(len(NAMES))}
     figures = {**all_figures(), **eye_figures(eyes, NAMES, np.ones((1, 1, 6, 6)))}
     lead = Lead()
-    lead.feed(report_html(report, figures, verdicts(report)))
+    lead.feed(report_html(judged(report), figures))
     assert sorted(i for _, i in lead.images) == sorted(f"fig-{k}" for k in FIGURE_KEYS)
 
 
@@ -266,7 +281,7 @@ def test_an_eyebox_of_zero_size_has_no_map() -> None:
     figures = eye_figures(eyes, NAMES, np.ones((1, 1, 6, 6)))
     assert "eye_map" not in figures
     report = report_for(eyes)
-    page = report_html(report, figures, verdicts(report))
+    page = report_html(judged(report), figures)
     assert "No eyebox map: the eyebox has zero size" in page
 
 
@@ -277,7 +292,7 @@ def test_an_eyebox_of_zero_size_has_no_map() -> None:
 def test_the_terminal_table_leads_with_the_distribution(capsys: pytest.CaptureFixture[str]
                                                          ) -> None:
     report = report_for(synthetic_eyes([OPEN_DB - 1.5, 30.0], targets=2), ("letter", "grid"))
-    print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
+    print_eye_distribution(headline(report), ("letter", "grid"),
                             validated=True)
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"PSNR over the eye distribution (dB), p10 / median / p90, {STATES} states:"
@@ -303,11 +318,10 @@ def test_the_terminal_says_when_the_distribution_was_not_judged(
 def test_the_terminal_lists_the_reports_other_warnings_and_failures(
         capsys: pytest.CaptureFixture[str]) -> None:
     report = report_for(synthetic_eyes([OPEN_DB - 1.5, 30.0], targets=2), ("letter", "grid"))
-    verdicts = [{"topic": "light", "level": "warn", "text": "The view is mesopic."},
-                {"topic": "contrast", "level": "fail", "text": "Leakage."},
-                {"topic": "mesh", "level": "pass", "text": "Watertight."},
-                {"topic": "eye distribution", "level": "fail", "text": "Printed above."}]
-    print_eye_distribution({"eye_distribution": eye_headline(report)}, ("letter", "grid"),
+    verdicts = [Verdict("light", "warn", "The view is mesopic."),
+                Verdict("contrast", "fail", "Leakage."), Verdict("mesh", "pass", "Watertight."),
+                Verdict("eye distribution", "fail", "Printed above.")]
+    print_eye_distribution(headline(report), ("letter", "grid"),
                             validated=True, verdicts=verdicts)
     out = capsys.readouterr().out
     assert "light: WARN: The view is mesopic." in out
@@ -317,14 +331,14 @@ def test_the_terminal_lists_the_reports_other_warnings_and_failures(
 
 def test_the_terminal_ends_with_the_recommended_fix(capsys: pytest.CaptureFixture[str]) -> None:
     report = report_for(synthetic_eyes(OPEN_DB - 1.5))
-    print_eye_distribution({"eye_distribution": eye_headline(report)}, NAMES, validated=True,
-                            verdicts=report["verdicts"])
+    lines = Report.from_json(report).verdicts
+    print_eye_distribution(headline(report), NAMES, validated=True, verdicts=lines)
     out = " ".join(capsys.readouterr().out.split())
-    first = report["verdicts"][0]
-    assert first["topic"] == EYE_TOPIC and first["level"] == "fail"
-    others = sum(len(v["fixes"]) for v in report["verdicts"]) - 1
-    assert out.endswith(f"recommended fix (eye distribution): {first['fixes'][0]} ({others} "
+    first = lines[0]
+    assert first.topic == EYE_TOPIC and first.level == "fail"
+    others = sum(len(v.fixes) for v in lines) - 1
+    assert out.endswith(f"recommended fix (eye distribution): {first.fixes[0]} ({others} "
                         "other fixes in the report)")
-    assert first["fixes"][1] not in out  # the others are in the report
+    assert first.fixes[1] not in out  # the others are in the report
     print_eye_distribution({"eye_distribution": None}, NAMES, validated=True)
     assert "recommended fix" not in capsys.readouterr().out  # no verdicts, no fix

@@ -408,7 +408,7 @@ def report_variant(name: str) -> tuple[dict[str, Any], dict[str, bytes]]:
         inputs["metrics"] = {"as_built": inputs["metrics"]["as_built"]}
         inputs["timings_s"] = {}
         made, figures = None, {}
-    report = build_report(**inputs, made_part=made)
+    report = build_report(**inputs, made_part=made).as_json()
     return report, figures
 
 
@@ -416,10 +416,10 @@ def report_variant(name: str) -> tuple[dict[str, Any], dict[str, bytes]]:
                                   "one eye position", "bare"])
 def test_no_section_is_only_a_heading(name: str) -> None:
     from aperture_fab.report.page import report_html
-    from aperture_fab.validation.verdicts import verdicts
+    from tests.test_report import judged
 
     report, figures = report_variant(name)
-    page = report_html(report, figures, verdicts(report))
+    page = report_html(judged(report), figures)
     sections = Sections()
     sections.feed(page)
     assert sections.text

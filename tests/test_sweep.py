@@ -281,8 +281,9 @@ def fake_report(gap_mm: float, pitch_mm: float, process: str) -> dict[str, Any]:
 
 @pytest.fixture
 def fake_design(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
-    """Replace run_design by a fake that writes report.json and returns it as the result's
-    report, as run_design does; returns the list of its calls.
+    """Replace run_design by a fake that writes report.json and returns the result's report
+    (its `as_json` gives report.json's content), as run_design does; returns the list of its
+    calls.
     A gap of exactly 12 mm raises, like a point the process cannot make."""
     return install_fake_design(monkeypatch)
 
@@ -302,7 +303,7 @@ def install_fake_design(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]
             raise ValueError("cannot make this one")
         report = fake_report(plate.gap_mm, plate.pitch_mm[0], process)
         (out.parent / "report.json").write_text(json.dumps(report))
-        return SimpleNamespace(report=report)
+        return SimpleNamespace(report=SimpleNamespace(as_json=lambda: report))
 
     monkeypatch.setattr(aperture_fab.pipeline, "run_design", run_design)
     return calls

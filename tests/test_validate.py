@@ -214,7 +214,7 @@ def run_tolerance(fitted_part, position_sigma_mm=0.0, radius_bias_mm=0.0, **sett
                       radius_sigma_mm=0.0, position_sigma_mm=position_sigma_mm)
     values = {"tolerance_samples": 8, "gap_sigma_mm": 0.0, "eye_sigma_mm": 0.0,
               "tilt_sigma_deg": 0.0, "seed": 3, **settings}
-    return tolerance_analysis(config, targets, [torch.as_tensor(d) for d in fitted], layout,
+    return tolerance_analysis(config.scene, targets, [torch.as_tensor(d) for d in fitted], layout,
                               process, ValidationSettings(**values), 10.0, torch.device("cpu"),
                               torch.float64)
 
@@ -364,7 +364,7 @@ def test_a_moving_eye_design_is_judged_over_its_distribution_without_eye_draws(f
     config = tiny_config("near-eye", **{"optimizer.precision": "float64"})
     process = replace(PROCESSES["photomask"], radius_sigma_mm=0.0, position_sigma_mm=0.0)
     results = [tolerance_analysis(
-        config, targets, [torch.as_tensor(d) for d in fitted], layout, process,
+        config.scene, targets, [torch.as_tensor(d) for d in fitted], layout, process,
         ValidationSettings(tolerance_samples=4, gap_sigma_mm=0.0, eye_sigma_mm=eye,
                            tilt_sigma_deg=0.0), None, torch.device("cpu"), torch.float64)
         for eye in (0.0, 2.0)]

@@ -30,6 +30,7 @@ from aperture_fab.cli import (
     EXIT_USAGE,
     main,
 )
+from aperture_fab.validation.report import Verdict
 from aperture_fab.validation.verdicts import overall_level
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -40,8 +41,8 @@ NAMES = ("marker",)
 FAST_VALIDATION = ["--tolerance-samples", "2", "--mesh-samples", "8"]
 
 
-def verdict(topic: str, level: str, text: str) -> dict[str, str]:
-    return {"topic": topic, "level": level, "text": text}
+def verdict(topic: str, level: str, text: str) -> Verdict:
+    return Verdict(topic, level, text)
 
 
 #: The fake reports do not judge the eye distribution (their eye_distribution block is null).
@@ -49,7 +50,7 @@ EYES = verdict("eye distribution", "info", "Not judged over the eye distribution
 NOTE = verdict("nominal", "info", "At the nominal eye point the view scores 20.0 dB PSNR.")
 #: Report verdicts (most important first) for each overall level, and the check that decides
 #: it: the first verdict at that level. Each text has two sentences: the line quotes the first.
-REPORTS: dict[str, tuple[list[dict[str, str]], str | None]] = {
+REPORTS: dict[str, tuple[list[Verdict], str | None]] = {
     "pass": ([EYES, verdict("made part", "pass", "As made, 5 dB better. Make it."),
               verdict("tolerance", "pass", "All 16 parts score above 7.2 dB. At least 90 %."),
               NOTE], None),
@@ -73,7 +74,7 @@ STATUS = {("pass", False): EXIT_OK, ("pass", True): EXIT_OK,
 WORD = {"pass": "PASS", "warn": "WARN", "fail": "FAIL", "info": "NOTE"}
 
 
-def fake_design(verdicts: list[dict[str, str]]) -> Callable[..., Any]:
+def fake_design(verdicts: list[Verdict]) -> Callable[..., Any]:
     """run_design's stand-in: no optimizer, the given report verdicts (none without validation)."""
 
     def run(targets: Any, out: Path, config: Any, *, validation: Any = None, **_: Any) -> Any:
@@ -81,25 +82,26 @@ def fake_design(verdicts: list[dict[str, str]]) -> Callable[..., Any]:
         return SimpleNamespace(design=design, names=NAMES, part=None, timings_s={},
                                metrics={"eye_distribution": None,
                                         "optimized": {"psnr_db": [20.0]}},
-                               verdicts=[] if validation is None else list(verdicts))
+                               verdicts=() if validation is None else tuple(verdicts))
 
     return run
 
 
-def fake_validate(verdicts: list[dict[str, str]]) -> Callable[..., Any]:
+def fake_validate(verdicts: list[Verdict]) -> Callable[..., Any]:
     """run_validate's stand-in: publishes a report.json with the given verdicts and returns
     it, as the job does (the command takes the verdicts from the returned report)."""
 
     def run(part: Path, targets: Any, *, out: Path, **_: Any) -> Any:
         out.mkdir(parents=True)
-        report = {"verdicts": verdicts, "eye_distribution": None}
-        (out / "report.json").write_text(json.dumps(report))
+        report = SimpleNamespace(verdicts=tuple(verdicts), eye_distribution=None)
+        (out / "report.json").write_text(json.dumps(
+            {"verdicts": [v.as_dict() for v in verdicts], "eye_distribution": None}))
         layout = SimpleNamespace(count=3, violations=[])
         return SimpleNamespace(folder=out, kind="holes", names=NAMES, timings_s={},
                                part=SimpleNamespace(layout=layout), display_source="kept",
                                validation=SimpleNamespace(
                                    metrics={"as_built": {"marker": {"psnr_db": 20.0}}}),
-                               report=json.loads(json.dumps(report)))
+                               report=report)
 
     return run
 
@@ -133,7 +135,7 @@ def run_cli(tmp_path: Path, tiny_toml: Path, marker_png: Path, monkeypatch: pyte
 @pytest.mark.parametrize("command", ["design", "validate"])
 def test_the_exit_status_is_the_reports_verdict(run_cli: Callable[..., Any], command: str,
                                                 level: str, strict: bool) -> None:
-    assert overall_level([SimpleNamespace(**v) for v in REPORTS[level][0]]) == level  # the setup
+    assert overall_level(REPORTS[level][0]) == level  # the setup
     code, _, _ = run_cli(command, level, "-q", *(["--strict"] if strict else []))
     assert code == STATUS[level, strict]
 
@@ -150,9 +152,9 @@ def test_quiet_prints_one_line_that_carries_the_verdict(run_cli: Callable[..., A
     verdicts, deciding = REPORTS[level]
     if deciding is None:
         return
-    first = next(v for v in verdicts if v["topic"] == deciding)
-    sentence, rest = re.split(r"(?<=\.) (?=[A-Z])", first["text"])  # not at "e.g. 0.92"
-    count = sum(v["level"] == level for v in verdicts)
+    first = next(v for v in verdicts if v.topic == deciding)
+    sentence, rest = re.split(r"(?<=\.) (?=[A-Z])", first.text)  # not at "e.g. 0.92"
+    count = sum(v.level == level for v in verdicts)
     topic = deciding if count == 1 else f"{count} checks {level}, first {deciding}"
     assert line.endswith(f"; {topic}: {sentence}"), line
     assert rest not in line  # the rest, and the fix, are in the report

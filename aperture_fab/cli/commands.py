@@ -140,7 +140,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     output.timings(result.timings_s)
     if not output.quiet:
         print_eye_distribution({"eye_distribution": eye_headline(report)}, result.names,
-                                validated=True, verdicts=report["verdicts"])
+                                validated=True, verdicts=report.verdicts)
         print("PSNR after gain (dB), nominal eye position:")
         print(f"  {'variant':<22}" + "".join(f"{name:>16}" for name in result.names))
         for variant, per_target in metrics.items():
@@ -151,7 +151,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
             for v in layout.violations[:10]:
                 print(f"  {v.rule}" + ("" if v.cell is None else f" cell {v.cell}")
                       + f": {v.resolution}")
-    judgement = Judgement.of(report["verdicts"])
+    judgement = Judgement.of(report.verdicts)
     wrote = (f"wrote {result.folder}/ ({result.kind} {args.part}: {layout.count} holes, "
              f"display content {result.display_source})")
     output.result(judgement.line(wrote, result.folder / "report.html", args.strict))

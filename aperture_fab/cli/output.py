@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import re
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from aperture_fab.cli.status import EXIT_OK, EXIT_REPORT_FAIL, EXIT_REPORT_WARN
+
+if TYPE_CHECKING:  # the CLI imports the judging code only when it runs
+    from aperture_fab.validation.report import Verdict
 
 __all__ = ["Judgement", "Output", "print_design_tables", "print_eye_distribution", "report_forced",
            "show_warning"]
@@ -121,14 +124,13 @@ EYE_COLUMN = 22
 
 
 def print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
-                            validated: bool, verdicts: Sequence[dict[str, str]] = ()) -> None:
+                            validated: bool, verdicts: Sequence[Verdict] = ()) -> None:
     """The design table's lead: PSNR p10 / median / p90 over the eye distribution per variant
     and target, then the eye-distribution verdict (or why there is none), the part as made
     against the best regular array, the report's other warnings and failures, and the fix the
     report recommends (its others are in the report)."""
     import textwrap
 
-    from aperture_fab.validation.report import Verdict
     from aperture_fab.validation.verdicts import LEVEL_WORDS, MADE_TOPIC, NOT_JUDGED, fix_plan
 
     headline = metrics.get("eye_distribution")
@@ -143,12 +145,11 @@ def print_eye_distribution(metrics: dict[str, Any], names: Sequence[str], *,
     # other judged findings that need action (light, contrast, tolerances...), which the final
     # line's verdict may name even when the eye distribution was not judged.
     for other in verdicts:
-        if other["topic"] == MADE_TOPIC or (other["level"] in ("fail", "warn")
-                                            and other["topic"] != "eye distribution"):
-            print(textwrap.fill(f"{other['topic']}: {LEVEL_WORDS[other['level']]}: "
-                                f"{other['text']}", 100, subsequent_indent="  "))
-    plan = fix_plan([Verdict(v["topic"], v["level"], v["text"], tuple(v.get("fixes", ())))
-                     for v in verdicts])
+        if other.topic == MADE_TOPIC or (other.level in ("fail", "warn")
+                                         and other.topic != "eye distribution"):
+            print(textwrap.fill(f"{other.topic}: {LEVEL_WORDS[other.level]}: {other.text}",
+                                100, subsequent_indent="  "))
+    plan = fix_plan(verdicts)
     if plan.recommended is not None and plan.deciding is not None:
         others = (f" ({len(plan.alternatives)} other fixes in the report)"
                   if plan.alternatives else "")
@@ -192,16 +193,15 @@ class Judgement:
     """
 
     level: str
-    deciding: Mapping[str, str] | None
+    deciding: Verdict | None
     count: int
 
     @classmethod
-    def of(cls, verdicts: Sequence[Mapping[str, str]]) -> Judgement:
-        from aperture_fab.validation.report import Verdict
+    def of(cls, verdicts: Sequence[Verdict]) -> Judgement:
         from aperture_fab.validation.verdicts import overall_level
 
-        level = overall_level([Verdict(v["topic"], v["level"], v["text"]) for v in verdicts])
-        at_level = [v for v in verdicts if v["level"] == level]
+        level = overall_level(verdicts)
+        at_level = [v for v in verdicts if v.level == level]
         return cls(level, at_level[0] if level != "info" else None, len(at_level))
 
     def status(self, strict: bool) -> int:
@@ -221,10 +221,10 @@ class Judgement:
         text = f"{LEVEL_WORDS[self.level]}: {wrote} - {report} says {words}"
         if self.deciding is None or self.level == "pass":
             return text
-        reason = " ".join(SENTENCE_END.split(self.deciding["text"].strip(), 1)[0].split())
+        reason = " ".join(SENTENCE_END.split(self.deciding.text.strip(), 1)[0].split())
         if len(reason) > REASON_CHARS:
             reason = reason[:REASON_CHARS].rsplit(" ", 1)[0] + " ..."
-        topic = self.deciding["topic"]
+        topic = self.deciding.topic
         if self.count > 1:
             topic = f"{self.count} checks {self.level}, first {topic}"
         return f"{text}; {topic}: {reason}"

@@ -29,6 +29,7 @@ from aperture_fab.fabrication.part import Part, make_part
 from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import holes_csv, stl_bytes, svg_text
 from aperture_fab.io.manifest import MANIFEST_NAME, publish, refuse_overwrite, staging
+from aperture_fab.optics.scene import Scene
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,
     DESIGN_NAME,
@@ -142,17 +143,17 @@ def display_pngs(folder: Path, names: Sequence[str]) -> dict[str, bytes]:
             if (folder / f"display_{name}.png").is_file()}
 
 
-def sheet_files(part: Part, config: Config, fabrication: FabricationSettings,
+def sheet_files(part: Part, scene: Scene, fabrication: FabricationSettings,
                 names: Sequence[str], design_folder: Path, displays: Mapping[str, bytes]
                 ) -> dict[str, bytes]:
-    """The sheet's set, name -> bytes: assembly.html, for a part whose design is published to
-    design_folder (its commands run there), the display PNGs `displays` (name -> bytes) its
-    thumbnails; and the calibration coupon as a part, built by the plate's mesh builder and
-    written by the plate's formats (mm): coupon.stl, coupon.svg (the design's SVG polarity),
-    coupon_holes.csv."""
+    """The sheet's set, name -> bytes: assembly.html, for a part made for `scene` whose design
+    is published to design_folder (its commands run there), the display PNGs `displays` (name
+    -> bytes) its thumbnails; and the calibration coupon as a part, built by the plate's mesh
+    builder and written by the plate's formats (mm): coupon.stl, coupon.svg (the design's SVG
+    polarity), coupon_holes.csv."""
     process = fabrication.process
-    coupon = coupon_part(calibration_coupon(process, config.scene.plate), process)
-    sheet = assembly_html(part, config, process, list(names),
+    coupon = coupon_part(calibration_coupon(process, scene.plate), process)
+    sheet = assembly_html(part, scene, process, list(names),
                           design_name=Path(design_folder).resolve().name, displays=displays,
                           commands=command_setup(design_folder))
     return {
@@ -164,13 +165,13 @@ def sheet_files(part: Part, config: Config, fabrication: FabricationSettings,
     }
 
 
-def write_assembly(folder: Path, part: Part, config: Config, fabrication: FabricationSettings,
+def write_assembly(folder: Path, part: Part, scene: Scene, fabrication: FabricationSettings,
                    names: Sequence[str], design_folder: Path, displays: Mapping[str, bytes]
                    ) -> list[Path]:
     """Write the sheet's set (sheet_files) into `folder`, a design job's staging folder, for
     its part; design_folder: where the design is published (the sheet's commands run there);
     displays: the display PNGs the job wrote, name -> bytes."""
-    files = sheet_files(part, config, fabrication, names, design_folder, displays)
+    files = sheet_files(part, scene, fabrication, names, design_folder, displays)
     for name, data in files.items():
         write_atomic(folder / name, data)
     return [folder / name for name in files]
@@ -209,7 +210,7 @@ def run_assembly(folder: Path, out: Path | None = None) -> Path:
                          "or choose another --out.")
     loaded = load_design_part(folder)
     design_folder = loaded.folder.resolve()
-    files = sheet_files(loaded.part, loaded.config, loaded.fabrication, loaded.names,
+    files = sheet_files(loaded.part, loaded.config.scene, loaded.fabrication, loaded.names,
                         design_folder, display_pngs(design_folder, loaded.names))
     _add_to_set(design_folder, files)
     sheet = design_folder / ASSEMBLY_NAME

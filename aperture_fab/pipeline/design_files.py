@@ -7,6 +7,7 @@ import io
 import json
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,6 +20,7 @@ from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain
+from aperture_fab.validation.judge import judge
 from aperture_fab.validation.validate import Validation, validate
 
 if TYPE_CHECKING:  # the job's value; design_job imports this module
@@ -32,9 +34,9 @@ __all__ = ["evidence_files", "judge_written", "part_bytes", "part_formats",
 def judge_written(result: DesignResult, fabrication: FabricationSettings,
                   settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
                   ) -> tuple[Validation, Evidence]:
-    """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again) and
-    assemble its report (report.json's content, views.npz, report.html): values, nothing
-    written (`evidence_files` gives their bytes)."""
+    """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again), judge
+    it and draw its report (views.npz, report.html): values, nothing written
+    (`evidence_files` gives their bytes)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.report.evidence import assemble
 
@@ -47,11 +49,13 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
                        built_displays=result.built_displays)
     start = time.perf_counter()
     shown = result.design.displays if result.built_displays is None else result.built_displays
-    evidence = assemble(result.config, result.names, result.targets, shown,
-                        result.design.loss_history, result.part, fabrication.process, checked,
-                        result.timings_s, part_file="plate.stl", command=command)
-    evidence.report["timings_s"]["report_s"] = time.perf_counter() - start
-    return checked, evidence
+    report = judge(result.config, result.names, result.targets, shown, result.part,
+                   fabrication.process, checked, result.timings_s, part_file="plate.stl",
+                   command=command)
+    evidence = assemble(report, result.names, result.targets, shown,
+                        result.design.loss_history, result.part, checked)
+    timed = evidence.report.with_timing("report_s", time.perf_counter() - start)
+    return checked, replace(evidence, report=timed)
 
 
 def evidence_files(evidence: Evidence) -> dict[str, bytes]:

@@ -58,7 +58,7 @@ from aperture_fab.pipeline.design_files import (
     write_summary,
 )
 from aperture_fab.pipeline.saved import validations_of
-from aperture_fab.validation.report import eye_headline, json_ready
+from aperture_fab.validation.report import Report, Verdict, eye_headline
 from aperture_fab.validation.validate import Validation, layout_fractions
 
 if TYPE_CHECKING:
@@ -95,12 +95,11 @@ class DesignResult:
         snapped plate, or re-fitted to the part when no iteration saw it (None when the display
         shows the targets, or without a part): what the device should show.
     timings_s: seconds per stage.
-    verdicts: the report's findings ({"topic", "level", "text"}, most important first) when
-        the part was judged; empty otherwise.
     part_files: the part's files, file name -> bytes (plate.stl, plate.3mf, ...;
         empty without a part).
-    report: report.json's content (plain JSON values) when the part was judged (`design`'s
-        validation settings): the report the sweep tabulates; None otherwise.
+    report: the judged part (verdicts and report.json's content) when it was judged
+        (`design`'s validation settings): what the CLI prints and the sweep tabulates; None
+        otherwise.
     report_files: that report's files, name -> bytes (report.json, report.html, views.npz;
         empty when not judged).
     """
@@ -114,10 +113,14 @@ class DesignResult:
     part: Part | None = None
     built_displays: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
-    verdicts: list[dict[str, str]] = field(default_factory=list)
     part_files: dict[str, bytes] = field(default_factory=dict)
-    report: dict[str, Any] | None = None
+    report: Report | None = None
     report_files: dict[str, bytes] = field(default_factory=dict)
+
+    @property
+    def verdicts(self) -> tuple[Verdict, ...]:
+        """The report's findings, most important first; empty when the part was not judged."""
+        return () if self.report is None else self.report.verdicts
 
 
 def design(
@@ -314,7 +317,7 @@ def evaluate(
         # The open display shows the target itself: the best it can do without a plate.
         views["open"] = np.stack([
             np.stack([render_open(scene, t, p).cpu().double().numpy() for p in positions])
-            for t in _display_targets(config, target_t)
+            for t in _display_targets(scene.display.pixels, target_t)
         ])
         pin_a = torch.as_tensor(array.open_fraction, dtype=dtype, device=device)
         # One display for all eye positions (for the nominal one), like the design's.
@@ -331,9 +334,8 @@ def evaluate(
     return views, metrics
 
 
-def _display_targets(config: Config, targets: torch.Tensor) -> torch.Tensor:
-    """Targets resampled onto the display grid, (T, C, H, W)."""
-    size = config.scene.display.pixels
+def _display_targets(size: tuple[int, int], targets: torch.Tensor) -> torch.Tensor:
+    """Targets resampled onto a display grid of `size` (W, H) pixels, (T, C, H, W)."""
     return torch.stack([
         torch.as_tensor(resample(t.cpu().double().numpy(), size), dtype=targets.dtype,
                         device=targets.device)
@@ -366,8 +368,8 @@ def _with_judgement(result: DesignResult, checked: Validation, evidence: Evidenc
     for variant in ("quantized", "as_built"):
         per_target = [checked.metrics[variant][name] for name in result.names]
         metrics[variant] = {key: [m[key] for m in per_target] for key in ("mse", "psnr_db")}
-    return dataclasses.replace(result, metrics=metrics, verdicts=list(report["verdicts"]),
-                               report=json_ready(report), report_files=evidence_files(evidence))
+    return dataclasses.replace(result, metrics=metrics, report=report,
+                               report_files=evidence_files(evidence))
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,
@@ -432,8 +434,8 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
             from aperture_fab.pipeline.assembly_job import write_assembly
 
-            write_assembly(stage_folder, result.part, result.config, fabrication, result.names,
-                           folder.resolve(), display_pngs)
+            write_assembly(stage_folder, result.part, result.config.scene, fabrication,
+                           result.names, folder.resolve(), display_pngs)
         publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
     for stale in validated:  # they judged the design just replaced
         remove_listed(stale)

@@ -12,12 +12,11 @@ design.npz lies beside the config.
 
 from __future__ import annotations
 
-import json
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -43,6 +42,7 @@ from aperture_fab.pipeline.saved import (
     part_kind,
     read_config,
 )
+from aperture_fab.validation.report import Report, report_json
 from aperture_fab.validation.validate import Validation, layout_fractions, validate
 
 __all__ = ["DisplaySource", "RecheckResult", "run_validate"]
@@ -63,7 +63,7 @@ class RecheckResult:
     folder: where report.json, report.html, views.npz and display_<target>.png were written.
     kind: the part's kind. names: (T,) target names. part: the part checked (layout, mesh).
     validation: views and metrics. display_source: where the display content came from.
-    timings_s: seconds per stage. report: report.json's content as written (its "verdicts"
+    timings_s: seconds per stage. report: the judged part as report.json holds it (its verdicts
     decide the exit status).
     """
 
@@ -74,7 +74,7 @@ class RecheckResult:
     validation: Validation
     display_source: DisplaySource
     timings_s: dict[str, float]
-    report: Mapping[str, Any]
+    report: Report
 
 
 def design_part(design: SavedDesign, loaded: Part, config: Config,
@@ -168,7 +168,7 @@ def run_validate(
     stage: called with a line as each stage starts (for logs, where there are no progress bars).
     """
     from aperture_fab.report.evidence import assemble
-    from aperture_fab.validation.report import report_json
+    from aperture_fab.validation.judge import judge
 
     start = time.perf_counter()
     kind = part_kind(part)
@@ -228,22 +228,21 @@ def run_validate(
     scan = measured_scan(config_path.parent)
     part_file = part.name if scan is None else (f"{part.name}, the plate as made, measured "
                                                 f"from the scan {scan}")
-    evidence = assemble(config, tuple(names), view_targets, shown, history, loaded,
-                        fabrication.process, checked, timings, part_file=part_file,
-                        command=command)
-    report = dict(evidence.report)
-    report["timings_s"] = {**report["timings_s"], "report_s": time.perf_counter() - start}
-    report["checked_part"] = {"path": str(part), "kind": kind, "config": str(config_path),
-                              "display": source,
-                              "design": None if design is None else str(design.path),
-                              "measured_from_scan": scan}
-    report_text = report_json(report)
+    report = judge(config, tuple(names), view_targets, shown, loaded, fabrication.process,
+                   checked, timings, part_file=part_file, command=command)
+    evidence = assemble(report, tuple(names), view_targets, shown, history, loaded, checked)
+    report = replace(
+        evidence.report.with_timing("report_s", time.perf_counter() - start),
+        checked_part={"path": str(part), "kind": kind, "config": str(config_path),
+                      "display": source,
+                      "design": None if design is None else str(design.path),
+                      "measured_from_scan": scan})
     with staging(folder) as staged:
         write_atomic(staged / "views.npz", evidence.views_npz)
         write_atomic(staged / "report.html", evidence.html)
-        write_atomic(staged / "report.json", report_text)
+        write_atomic(staged / "report.json", report_json(report))
         for name, content in zip(names, shown, strict=True):
             write_atomic(staged / f"display_{name}.png", encode_png(np.clip(content, 0, 1)))
         publish(staged, folder, command if command is not None else VALIDATE_COMMAND)
     return RecheckResult(folder, kind, tuple(names), loaded, checked, source,
-                         dict(report["timings_s"]), json.loads(report_text))
+                         dict(report.timings_s), report)

@@ -1,7 +1,7 @@
 """The assembly sheet: one printable HTML page that says how to make and put together the device
 for one design (docs/assembly.md explains it).
 
-Values in, HTML text out: the part as built, the design's config, the process and the design's
+Values in, HTML text out: the part as built, the design's scene, the process and the design's
 target names. The page holds the plate drawing (outline, alignment key, thickness, holes), the
 device in section (display, frame, plate, eye), where and which way up the display image goes on
 the panel, the calibration coupon of docs/processes.md and a numbered procedure. Its drawings are
@@ -23,7 +23,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from aperture_fab.config.config import Config
 from aperture_fab.fabrication.coupon import Coupon, calibration_coupon
 from aperture_fab.fabrication.layout import HoleLayout, layout_stats
 from aperture_fab.fabrication.part import Part
@@ -228,18 +227,18 @@ def _command(command: SheetCommand, setup: CommandSetup) -> str:
             f'{_e(line)}</pre><p class="needs">{" ".join(notes)}</p>')
 
 
-def _example_module_mm(config: Config, part: Part) -> tuple[float, float]:
+def _example_module_mm(scene: Scene, part: Part) -> tuple[float, float]:
     """The frame command's example display module outline: the panel's active area, or the
     plate where it is wider, rounded up to whole mm, plus EXAMPLE_BORDER_MM each side."""
-    display = config.scene.display
+    display = scene.display
     width, height = part.layout.outline_mm
     return (math.ceil(max(display.width_mm, width)) + 2 * EXAMPLE_BORDER_MM,
             math.ceil(max(display.height_mm, height)) + 2 * EXAMPLE_BORDER_MM)
 
 
-def _frame_command(config: Config, part: Part, setup: CommandSetup) -> SheetCommand:
+def _frame_command(scene: Scene, part: Part, setup: CommandSetup) -> SheetCommand:
     """cad/mount_frame.py for this design, with an example display module that fits it."""
-    module = _example_module_mm(config, part)
+    module = _example_module_mm(scene, part)
     argv = (setup.python, _cad_script(setup, "mount_frame.py"), "--design", ".", "--display",
             _number(module[0]), _number(module[1]), "--bezel-height", _number(EXAMPLE_BEZEL_MM),
             "--out", FRAME_OUT)
@@ -265,8 +264,8 @@ def _thumbs(displays: Mapping[str, bytes]) -> str:
     return f'<div class="thumbs">{items}</div>' if items else ""
 
 
-def _plate_section(part: Part, config: Config, process: Process, facts: AssemblyFacts) -> str:
-    layout, plate = part.layout, config.scene.plate
+def _plate_section(part: Part, scene: Scene, process: Process, facts: AssemblyFacts) -> str:
+    layout, plate = part.layout, scene.plate
     width, height = layout.outline_mm
     cut = part.corner_cut_mm
     tilted = plate.hole_axis == "chief_ray"
@@ -303,14 +302,13 @@ def _plate_section(part: Part, config: Config, process: Process, facts: Assembly
           "top-left seen from the eye.</p></section>")
 
 
-def _stack_section(config: Config, part: Part, setup: CommandSetup) -> str:
-    scene = config.scene
+def _stack_section(scene: Scene, part: Part, setup: CommandSetup) -> str:
     plate, eye, display = scene.plate, scene.eye, scene.display
     eyebox = float(eye.eyebox_mm[0]) if eye.eyebox_mm is not None else 0.0
     sizes = StackSizes(display.width_mm, part.layout.outline_mm[0], plate.gap_mm,
                        plate.thickness_mm, eye.eye_relief_mm, eye.pupil_mm, eyebox,
                        FRAME_LEDGE_MM)
-    module = _example_module_mm(config, part)
+    module = _example_module_mm(scene, part)
     return (
         '<section id="frame"><h2>2. The frame and the stack</h2>'
         + _figure(stack_drawing(sizes),
@@ -321,7 +319,7 @@ def _stack_section(config: Config, part: Part, setup: CommandSetup) -> str:
                   ("eye relief", f"{eye.eye_relief_mm:g} mm: plate's eye-side face to the pupil"),
                   ("plate top above the display", f"{plate.gap_mm + plate.thickness_mm:g} mm")])
         + "<p>Make the frame with cad/mount_frame.py:</p>"
-        + _command(_frame_command(config, part, setup), setup)
+        + _command(_frame_command(scene, part, setup), setup)
         + f"<p>--display {_number(module[0])} {_number(module[1])} and --bezel-height "
           f"{_number(EXAMPLE_BEZEL_MM)} are an example (the panel's active area, "
           f"{display.width_mm:g} x {display.height_mm:g} mm, or the plate if wider, with a "
@@ -333,9 +331,9 @@ def _stack_section(config: Config, part: Part, setup: CommandSetup) -> str:
           "sharpness is set by it.</p></section>")
 
 
-def _display_section(config: Config, part: Part, facts: AssemblyFacts, names: Sequence[str],
+def _display_section(scene: Scene, part: Part, facts: AssemblyFacts, names: Sequence[str],
                      displays: Mapping[str, bytes]) -> str:
-    scene = config.scene
+    scene = scene
     display, plate = scene.display, scene.plate
     files = ", ".join(f"display_{n}.png" for n in names)
     step_px = facts.view_step_mm / facts.pixel_mm[0]
@@ -413,8 +411,8 @@ def _coupon_section(coupon: Coupon, process: Process, setup: CommandSetup) -> st
                   for d in coupon.diameters_mm) + "</table></section>")
 
 
-def _procedure(config: Config, names: Sequence[str]) -> str:
-    plate = config.scene.plate
+def _procedure(scene: Scene, names: Sequence[str]) -> str:
+    plate = scene.plate
     first = f"display_{names[0]}.png" if names else "the display image"
     steps = [
         "Print this sheet at 100 % (no \"fit to page\"); the scale bar must measure 50 mm.",
@@ -436,10 +434,10 @@ def _procedure(config: Config, names: Sequence[str]) -> str:
             + "".join(f"<li>{_e(s)}</li>" for s in steps) + "</ol></section>")
 
 
-def assembly_html(part: Part, config: Config, process: Process, names: Sequence[str], *,
+def assembly_html(part: Part, scene: Scene, process: Process, names: Sequence[str], *,
                   design_name: str = "design", displays: Mapping[str, bytes] | None = None,
                   commands: CommandSetup | None = None) -> str:
-    """The assembly sheet for a part built for `config`'s scene by `process`.
+    """The assembly sheet for a part built for `scene` by `process`.
 
     names: the design's target names (its display images are display_<name>.png).
     design_name: how the page names the design (its folder, say). displays: optional PNG bytes
@@ -447,18 +445,18 @@ def assembly_html(part: Part, config: Config, process: Process, names: Sequence[
     (default: "python" in a folder named design_name, the scripts in cad/).
     """
     setup = commands if commands is not None else CommandSetup(Path(design_name))
-    if part.layout.grid != config.scene.plate.cells:
-        raise ValueError(f"the part's grid {part.layout.grid} is not the config's plate.cells "
-                         f"{config.scene.plate.cells}; give the config the part was made with.")
-    facts = assembly_facts(part.layout, config.scene, process)
-    coupon = calibration_coupon(process, config.scene.plate)
+    if part.layout.grid != scene.plate.cells:
+        raise ValueError(f"the part's grid {part.layout.grid} is not the scene's plate.cells "
+                         f"{scene.plate.cells}; give the config the part was made with.")
+    facts = assembly_facts(part.layout, scene, process)
+    coupon = calibration_coupon(process, scene.plate)
     title = f"Assembly sheet: {design_name}"
     width, height = part.layout.outline_mm
-    summary = (f"Plate {width:g} x {height:g} x {config.scene.plate.thickness_mm:g} mm, "
-               f"{facts.hole_count} holes, {process.name}; gap {config.scene.plate.gap_mm:g} mm; "
-               f"display image {config.scene.display.pixels[0]} x "
-               f"{config.scene.display.pixels[1]} px on {config.scene.display.width_mm:g} x "
-               f"{config.scene.display.height_mm:g} mm.")
+    summary = (f"Plate {width:g} x {height:g} x {scene.plate.thickness_mm:g} mm, "
+               f"{facts.hole_count} holes, {process.name}; gap {scene.plate.gap_mm:g} mm; "
+               f"display image {scene.display.pixels[0]} x "
+               f"{scene.display.pixels[1]} px on {scene.display.width_mm:g} x "
+               f"{scene.display.height_mm:g} mm.")
     body = "\n".join([
         f"<h1>{_e(title)}</h1>",
         f"<p>{_e(summary)}</p>",
@@ -468,11 +466,11 @@ def assembly_html(part: Part, config: Config, process: Process, names: Sequence[
         scale_bar(),
         f"<p>The commands on this sheet run in {_e(_where(setup))}, with the Python that has "
         f"aperture-fab installed ({_e(setup.python)}); each says what it needs.</p>",
-        _plate_section(part, config, process, facts),
-        _stack_section(config, part, setup),
-        _display_section(config, part, facts, names, displays or {}),
+        _plate_section(part, scene, process, facts),
+        _stack_section(scene, part, setup),
+        _display_section(scene, part, facts, names, displays or {}),
         _coupon_section(coupon, process, setup),
-        _procedure(config, names),
+        _procedure(scene, names),
         "<p>Generated by aperture-fab; the guide is docs/assembly.md.</p>",
     ])
     return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'

@@ -41,9 +41,9 @@ from aperture_fab.validation.report import (
     EYE_VARIANTS,
     FIGURE_KEYS,
     LEVELS,
+    SCHEMA_VERSION,
+    Report,
     Verdict,
-    json_ready,
-    validate_report,
 )
 from aperture_fab.validation.verdicts import (
     JUDGED,
@@ -148,10 +148,6 @@ def _topic(topic: str) -> str:
     return topic[:1].upper() + topic[1:]
 
 
-def _as_verdict(line: Verdict | str) -> Verdict:
-    return line if isinstance(line, Verdict) else Verdict("", "info", str(line))
-
-
 def _badge(level: str) -> str:
     return f'<span class="level level-{level}">{LEVEL_WORDS[level]}</span> '
 
@@ -243,16 +239,16 @@ def _nominal_table(metrics: Mapping[str, Any]) -> str:
                  numeric=(1, 2))
 
 
-def _eyes_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
+def _eyes_html(report: Report, figures: Mapping[str, bytes],
                verdict: Verdict | None) -> str:
     """The table over the eye distribution, its verdict's level (the text leads the page),
     then the figures."""
-    block = report["eye_distribution"]
+    block = report.eye_distribution
     pointer = "" if verdict is None else (
         f'<p class="verdict verdict-{verdict.level}">{_badge(verdict.level)}'
         f'<a href="#verdict">The verdict on the eye distribution</a> leads the page.</p>')
     if block is None:
-        return _nominal_table(report["metrics"]) + pointer
+        return _nominal_table(report.metrics) + pointer
     d = block["distribution"]
     note = (f'<p class="muted">Percentiles over {block["states"]} eye states, a Halton set '
             f"covering the distribution ({e(describe_distribution(d))}), equally weighted; "
@@ -306,10 +302,10 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
         _img(figures, "made_front")])
 
 
-def _header(report: Mapping[str, Any], targets: Sequence[str]) -> str:
+def _header(report: Report, targets: Sequence[str]) -> str:
     """The part, its process, the date and the command that made the report."""
-    run = report.get("run")
-    process = report["fabrication"]["process"]
+    run = report.run
+    process = report.fabrication["process"]
     if run is None:
         return (f"<h1>Validation report</h1><p>Process <b>{e(process)}</b>; targets "
                 f"{e(', '.join(targets))}.</p>")
@@ -353,35 +349,32 @@ def _sections(shown: Sequence[tuple[str, str]], body: Mapping[str, str | None]) 
     return "\n".join(out)
 
 
-def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
-                verdicts: Sequence[Verdict | str],
+def report_html(report: Report, figures: Mapping[str, bytes],
                 displays: Mapping[str, bytes] | None = None) -> str:
     """One self-contained HTML page: inline CSS, images as data:image/png;base64, no script.
 
+    The page leads with the report's overall verdict and every judged one, worst first.
     figures: PNG bytes keyed by FIGURE_KEYS; a missing one is shown as "not computed".
-    verdicts: findings (see `verdicts`; plain strings are findings without a level): the page
-        leads with the overall verdict and every judged one, worst first.
     displays: {target name: PNG of the display content}, shown at native resolution.
     """
-    validate_report(report)
     displays = {} if displays is None else displays
     _check_images(figures, displays)
-    targets = sorted({n for b in report["metrics"].values() for n in b["per_target"]})
-    lines = [_as_verdict(v) for v in verdicts]
+    targets = sorted({n for b in report.metrics.values() for n in b["per_target"]})
+    lines = report.verdicts
     lead = next((v for v in lines if v.topic == EYE_TOPIC), None)
-    tolerance = report["tolerance"]
+    tolerance = report.tolerance
     # None: nothing to show, so the section is left out.
     body: dict[str, str | None] = {
         "verdict": _verdict_section(lines) if lines else f'<p class="muted">{NOT_COMPUTED}.</p>',
-        "made": made_html(report.get("made_part"), figures),
-        "light": light_html(report.get("photometry")),
+        "made": made_html(report.made_part, figures),
+        "light": light_html(report.photometry),
         "eyes": _eyes_html(report, figures, lead),
         "views": _img(figures, "views"),
         "errors": _img(figures, "errors"),
-        "metrics": metrics_html(report["metrics"]),
+        "metrics": metrics_html(report.metrics),
         "plate": _img(figures, "hole_map") + folded(
-            "The plate's geometry", pairs(report["scene"]["plate"])),
-        "display": display_html(displays, report["scene"]["display"]),
+            "The plate's geometry", pairs(report.scene["plate"])),
+        "display": display_html(displays, report.scene["display"]),
         "loss": _img(figures, "loss"),
         # Only with several eye positions (eye.positions_mm); the eye distribution covers the
         # eyebox otherwise.
@@ -389,18 +382,18 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
         "tolerance": (f'<p class="muted">Tolerance analysis {NOT_COMPUTED}.</p>'
                       if tolerance is None else
                       _img(figures, "tolerance") + tolerance_table(tolerance)),
-        "fabrication": fabrication_html(report["fabrication"]),
-        "mesh": mesh_html(report["mesh"]) + (_img(figures, "mesh_retrace")
-                                             if "mesh_retrace" in figures else ""),
-        "timings": timings_html(report["timings_s"]),
-        "scene": scene_html(report["scene"]),
-        "config": config_html(report["config"], report["versions"]),
+        "fabrication": fabrication_html(report.fabrication),
+        "mesh": mesh_html(report.mesh) + (_img(figures, "mesh_retrace")
+                                          if "mesh_retrace" in figures else ""),
+        "timings": timings_html(report.timings_s),
+        "scene": scene_html(report.scene),
+        "config": config_html(report.config, report.versions),
     }
     shown = [(key, heading) for key, heading in SECTION_TITLES if body[key] is not None]
     nav = " ".join(f'<a href="#{key}">{e(heading)}</a>' for key, heading in shown)
     sections = _sections(shown, body)
-    digest = hashlib.sha256(json.dumps(json_ready(report), sort_keys=True).encode()).hexdigest()
-    run = report.get("run")
+    digest = hashlib.sha256(json.dumps(report.as_json(), sort_keys=True).encode()).hexdigest()
+    run = report.run
     title = "aperture-fab validation report" + ("" if run is None else f": {run['part']}")
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -414,7 +407,7 @@ def report_html(report: Mapping[str, Any], figures: Mapping[str, bytes],
 <body>
 <main>
 {_header(report, targets)}
-<p class="muted">Schema {report["schema_version"]}; report digest {digest[:12]}.</p>
+<p class="muted">Schema {SCHEMA_VERSION}; report digest {digest[:12]}.</p>
 <nav>{nav}</nav>
 {sections}
 </main>

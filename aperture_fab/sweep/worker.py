@@ -162,8 +162,8 @@ def run_point(job: Job, target_files: TargetFiles | None = None
                             validation=validation, progress=False)
         if result.report is None:  # resolve_point always gives validation settings
             raise ValueError("the design job returned no report: it did not validate the part")
-        record.update(status="ok", figures=figures_from_report(result.report), error=None,
-                      traceback=None)
+        record.update(status="ok", figures=figures_from_report(result.report.as_json()),
+                      error=None, traceback=None)
     except Exception as err:  # a point's failure is data, not the sweep's end
         if type(err).__name__ == "Interrupted":  # the optimizer's Ctrl-C: stop the sweep
             raise KeyboardInterrupt from err

@@ -1,13 +1,14 @@
-"""The validation report's data: the report.json structure (checked by `report_schema`), and the
-views archive.
+"""The validation report's data: `Report`, a judged part as a value (report.json's structure,
+checked by `report_schema`), and the views archive.
 
 Pure functions, values in and bytes or text out; the pipeline writes the files. The figures are
 in aperture_fab.report.figures, the verdicts in aperture_fab.validation.verdicts, the HTML
 page in aperture_fab.report.page.
 
-report.json (`build_report`, checked by `validate_report`, written by `report_json`):
+report.json (`Report.as_json`; built by `build_report`, checked by `validate_report`, written
+by `report_json`):
 
-    schema_version  2
+    schema_version  3
     run             (optional) {"part": the part's file name, "process", "date" (ISO 8601 UTC),
                     "command": the command line, or null when called from Python}
     photometry      (optional) the light budget of the part as built, or null when its light
@@ -93,7 +94,7 @@ import json
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -119,6 +120,7 @@ __all__ = [
     "EYE_VARIANTS",
     "EYE_VARIANT_LABELS",
     "LEVELS",
+    "Report",
     "Verdict",
     "eye_headline",
     "REPORT_VARIANTS",
@@ -187,10 +189,6 @@ FIGURE_KEYS: dict[str, str] = {
 VIEW_KEY = re.compile(r"(?P<variant>[a-z_]+)/(?P<target>[^/]+)(/pos(?P<pos>\d+))?")
 
 # ---------------------------------------------------------------------------------------------
-# Checking the report's structure
-
-
-# ---------------------------------------------------------------------------------------------
 # Verdicts
 
 
@@ -214,15 +212,103 @@ class Verdict:
         return {"topic": self.topic, "level": self.level, "text": self.text,
                 "fixes": list(self.fixes)}
 
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Verdict:
+        """A verdict from report.json ("fixes" absent in older reports)."""
+        return cls(data["topic"], data["level"], data["text"], tuple(data.get("fixes", ())))
 
-def eye_headline(report: Mapping[str, Any]) -> dict[str, Any] | None:
+
+#: Top-level keys a report may carry after the blocks, in the order written: the mesh
+#: re-trace's Monte Carlo noise and its agreement with the model (when re-traced), and the part
+#: `validate` checked.
+_TRAILING = ("mesh_retrace_stderr_rms", "mesh_retrace_agreement_db", "checked_part")
+
+
+@dataclass(frozen=True)
+class Report:
+    """A judged part: report.json's content as a value (`as_json` gives the file's structure,
+    described in this module's docstring; `from_json` reads it back, checked).
+
+    verdicts: the findings, most important first (aperture_fab.validation.verdicts.verdicts;
+        empty until judged). The blocks are JSON-ready values (dicts, lists, numbers, strings,
+        None), each documented above under its report.json key; None where not computed.
+    mesh_retrace_stderr_rms, mesh_retrace_agreement_db: the written mesh's re-trace against
+        the model (RMS Monte Carlo noise, linear light; agreement in dB), or None.
+    checked_part: what `validate` checked ({"path", "kind", "config", "display", "design",
+        "measured_from_scan"}), or None for a design's own report.
+    """
+
+    metrics: Mapping[str, Any]
+    fabrication: Mapping[str, Any]
+    mesh: Mapping[str, Any]
+    tolerance: Mapping[str, Any] | None
+    timings_s: Mapping[str, float]
+    scene: Mapping[str, Any]
+    config: Mapping[str, Any]
+    versions: Mapping[str, str]
+    eye_distribution: Mapping[str, Any] | None = None
+    verdicts: tuple[Verdict, ...] = ()
+    run: Mapping[str, Any] | None = None
+    photometry: Mapping[str, Any] | None = None
+    made_part: Mapping[str, Any] | None = None
+    mesh_retrace_stderr_rms: float | None = None
+    mesh_retrace_agreement_db: float | None = None
+    checked_part: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        validate_report(self.as_json())
+
+    def as_json(self) -> dict[str, Any]:
+        """report.json's structure: plain JSON values, NaN and infinities as None."""
+        trailing = {key: getattr(self, key) for key in _TRAILING
+                    if getattr(self, key) is not None}
+        return dict(json_ready({
+            "schema_version": SCHEMA_VERSION,
+            **({} if self.run is None else {"run": self.run}),
+            "eye_distribution": self.eye_distribution,
+            **({} if self.made_part is None else {"made_part": self.made_part}),
+            "verdicts": [v.as_dict() for v in self.verdicts],
+            "photometry": self.photometry,
+            "metrics": self.metrics,
+            "fabrication": self.fabrication,
+            "mesh": self.mesh,
+            "tolerance": self.tolerance,
+            "timings_s": self.timings_s,
+            "scene": self.scene,
+            "config": self.config,
+            "versions": self.versions,
+            **trailing,
+        }))
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Report:
+        """A report read back from report.json's structure (checked: ValueError or TypeError
+        naming the first key that is missing or wrong)."""
+        validate_report(data)
+        fields: dict[str, Any] = {key: data.get(key) for key in (
+            "metrics", "fabrication", "mesh", "tolerance", "timings_s", "scene", "config",
+            "versions", "eye_distribution", "run", "photometry", "made_part", *_TRAILING)}
+        return cls(**fields, verdicts=tuple(Verdict.from_dict(v) for v in data["verdicts"]))
+
+    def with_timing(self, stage: str, seconds: float) -> Report:
+        """The report with one more stage timed."""
+        return replace(self, timings_s={**self.timings_s, stage: seconds})
+
+    def mean(self, variant: str, key: str = "psnr_db") -> float | None:
+        """A variant's mean over targets of one metric at the nominal eye point (None: not
+        judged or not computed)."""
+        block = self.metrics.get(variant)
+        value = None if block is None else block["mean"].get(key)
+        return None if value is None else float(value)
+
+
+def eye_headline(report: Report) -> dict[str, Any] | None:
     """The eye distribution's numbers without the maps and sweeps, with its verdict: for
     design.json and the terminal. None when the report did not judge the eye distribution."""
-    block = report.get("eye_distribution")
+    block = report.eye_distribution
     if block is None:
         return None
-    verdict = next((dict(v) for v in report.get("verdicts", ()) if v["topic"] == EYE_TOPIC),
-                   None)
+    verdict = next((v.as_dict() for v in report.verdicts if v.topic == EYE_TOPIC), None)
     keys = ("states", "percentiles", "targets", "distribution", "variants")
     return {**{k: copy.deepcopy(block[k]) for k in keys}, "verdict": verdict}
 
@@ -284,16 +370,16 @@ def build_report(
     config: Mapping[str, Any],
     versions: Mapping[str, str],
     eye_distribution: Mapping[str, Any] | None = None,
-    verdicts: Sequence[Verdict | Mapping[str, Any]] = (),
+    verdicts: Sequence[Verdict] = (),
     run: Mapping[str, Any] | None = None,
     photometry: Mapping[str, Any] | None = None,
     made_part: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
-    """The report.json structure, checked (see the module docstring).
+) -> Report:
+    """The report of a judged part, checked (see the module docstring).
 
     eye_distribution: the EYE_DISTRIBUTION block (aperture_fab.report.evidence builds it from
         robustness.EyeQuality), or None when the eye distribution was not judged.
-    verdicts: Verdicts (or their dicts), most important first; usually added afterwards, since
+    verdicts: most important first; usually added afterwards (`dataclasses.replace`), since
         aperture_fab.validation.verdicts.verdicts reads the report.
     run: the RUN block (part file, process, date, command), or None to leave it out.
     photometry: the PHOTOMETRY block (aperture_fab.validation.light.photometry_block), or None.
@@ -315,31 +401,19 @@ def build_report(
                     for values in per_target.values()]
         mean = summarize(with_nan) if with_nan else {}
         blocks[variant] = {"per_target": per_target, "mean": mean}
-    report = json_ready({
-        "schema_version": SCHEMA_VERSION,
-        **({} if run is None else {"run": run}),
-        "eye_distribution": eye_distribution,
-        **({} if made_part is None else {"made_part": made_part}),
-        "verdicts": [v.as_dict() if isinstance(v, Verdict) else v for v in verdicts],
-        "photometry": photometry,
-        "metrics": blocks,
-        "fabrication": fabrication,
-        "mesh": mesh,
-        "tolerance": tolerance,
-        "timings_s": timings_s,
-        "scene": scene,
-        "config": config,
-        "versions": versions,
-    })
-    validate_report(report)
-    return dict(report)
+    return Report(metrics=blocks, fabrication=json_ready(fabrication, "fabrication"),
+                  mesh=json_ready(mesh, "mesh"), tolerance=json_ready(tolerance, "tolerance"),
+                  timings_s=json_ready(timings_s, "timings_s"), scene=json_ready(scene, "scene"),
+                  config=json_ready(config, "config"), versions=json_ready(versions, "versions"),
+                  eye_distribution=json_ready(eye_distribution, "eye_distribution"),
+                  verdicts=tuple(verdicts), run=json_ready(run, "run"),
+                  photometry=json_ready(photometry, "photometry"),
+                  made_part=json_ready(made_part, "made_part"))
 
 
-def report_json(report: Mapping[str, Any]) -> str:
-    """report.json text: checked, indent 2, NaN and infinities as null (strict JSON)."""
-    plain = json_ready(report)
-    validate_report(plain)
-    return json.dumps(plain, indent=2, allow_nan=False) + "\n"
+def report_json(report: Report) -> str:
+    """report.json text: indent 2, NaN and infinities as null (strict JSON)."""
+    return json.dumps(report.as_json(), indent=2, allow_nan=False) + "\n"
 
 
 def views_npz(views: Mapping[str, np.ndarray]) -> bytes:

@@ -228,7 +228,7 @@ def validate(
     tolerance = None
     if settings.tolerance_samples > 0:
         start = time.perf_counter()
-        tolerance = tolerance_analysis(config, targets, shown, part.layout, process, settings,
+        tolerance = tolerance_analysis(scene, targets, shown, part.layout, process, settings,
                                        settings.threshold_db, device, dtype)
         timings["tolerance_s"] = time.perf_counter() - start
     return Validation(views, metrics, mesh_stderr, tolerance, timings, eyes, made_part)
@@ -287,7 +287,7 @@ def scaled_field_deg(fov_deg: tuple[float, float], scale: float) -> tuple[float,
                  for f in fov_deg)  # type: ignore[return-value]
 
 
-def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Tensor],
+def tolerance_analysis(scene: Scene, targets: np.ndarray, shown: list[torch.Tensor],
                        layout: HoleLayout, process: Process, settings: ValidationSettings,
                        threshold_db: float | None, device: torch.device, dtype: torch.dtype
                        ) -> dict[str, Any]:
@@ -316,7 +316,6 @@ def tolerance_analysis(config: Config, targets: np.ndarray, shown: list[torch.Te
     applied), judged the same way, less YIELD_MARGIN_DB.
     """
     rng = np.random.default_rng(settings.seed + 1)
-    scene = config.scene
     nominal_eye = scene.eye.positions_mm[0]
     distribution = distribution_of(scene.eye)
     states = None if distribution.is_point else distribution.evaluation_states(

@@ -8,11 +8,13 @@ figures, the part first.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
 __all__ = ["EYE_BASELINES", "EYE_VARIANTS", "PART_FIRST", "SHOWN_VARIANTS", "VARIANTS",
-           "VariantInfo"]
+           "VariantInfo",
+           "eye_first"]
 
 #: What the display shows with a variant, which is also what its light efficiency is measured
 #: against: the content fitted to the part, the content the design was optimized with, or the
@@ -70,3 +72,9 @@ SHOWN_VARIANTS: tuple[str, ...] = tuple(v for v in PART_FIRST if VARIANTS[v].fig
 #: The baselines the part must beat over the eye distribution: (name, phrase).
 EYE_BASELINES: tuple[tuple[str, str], ...] = tuple(
     (v.name, v.phrase) for v in VARIANTS.values() if v.phrase is not None)
+
+
+def eye_first(names: Iterable[str]) -> list[str]:
+    """Variant names with those of EYE_VARIANTS first, in that order, then the rest as given."""
+    names = list(names)
+    return [v for v in EYE_VARIANTS if v in names] + [v for v in names if v not in EYE_VARIANTS]

@@ -3,7 +3,7 @@ for a finding without a judgement), its reason and, when it is not a pass, the f
 proposes (each one change, most effective first, none that the design already applied); and
 `fix_plan`, the page's one recommended fix and the others.
 
-Pure functions, the report.json structure (aperture_fab.validation.report) in, `Verdict`s out;
+Pure functions, a `Report` (aperture_fab.validation.report) in, `Verdict`s out;
 the page (aperture_fab.report.page) and the terminal show them.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from aperture_fab.validation.light import contrast_verdict, light_verdict, lower_floor_fix
-from aperture_fab.validation.report import EYE_TOPIC, LEVELS, Verdict
+from aperture_fab.validation.report import EYE_TOPIC, LEVELS, Report, Verdict
 from aperture_fab.validation.variants import EYE_BASELINES
 
 __all__ = ["EYE_MARGIN_DB", "JUDGED", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
@@ -55,12 +55,6 @@ NOT_JUDGED = ("Not judged over the eye distribution (validation.eye_states = 0):
 # Verdicts in words
 
 
-def _mean(report: Mapping[str, Any], variant: str, key: str = "psnr_db") -> float | None:
-    block = report["metrics"].get(variant)
-    value = None if block is None else block["mean"].get(key)
-    return None if value is None else float(value)
-
-
 def _compare(difference: float, what: str) -> str:
     return f"{abs(difference):.1f} dB {'better' if difference >= 0 else 'worse'} than {what}"
 
@@ -82,9 +76,9 @@ def describe_distribution(distribution: Mapping[str, Any]) -> str:
     return ", ".join(parts)
 
 
-def _optimizer(report: Mapping[str, Any] | None) -> Mapping[str, Any]:
+def _optimizer(report: Report | None) -> Mapping[str, Any]:
     """The report's resolved optimizer settings ({} when unknown)."""
-    return {} if report is None else report.get("config", {}).get("optimizer", {})
+    return {} if report is None else report.config.get("optimizer", {})
 
 
 def tracked_fix(optimizer: Mapping[str, Any]) -> list[str]:
@@ -96,12 +90,12 @@ def tracked_fix(optimizer: Mapping[str, Any]) -> list[str]:
             "tracker)."]
 
 
-def _eye_fixes(report: Mapping[str, Any]) -> tuple[str, ...]:
+def _eye_fixes(report: Report, block: Mapping[str, Any]) -> tuple[str, ...]:
     """What to change when the part does not beat the baselines over the eye distribution,
     most effective first, leaving out what the design already does."""
-    plate = report["scene"]["plate"]
+    plate = report.scene["plate"]
     optimizer = _optimizer(report)
-    w, h = report["eye_distribution"]["distribution"]["eyebox_mm"]
+    w, h = block["distribution"]["eyebox_mm"]
     fixes = []
     if int(optimizer.get("eye_states", 1)) <= 1:
         fixes.append("Design for the eye distribution rather than the nominal eye point: "
@@ -116,7 +110,7 @@ def _eye_fixes(report: Mapping[str, Any]) -> tuple[str, ...]:
     return tuple(fixes)
 
 
-def eye_verdict(report: Mapping[str, Any]) -> Verdict:
+def eye_verdict(report: Report) -> Verdict:
     """The leading verdict: does the part beat the baselines over the eye distribution?
 
     Red (fail) when the part's 10th-percentile PSNR is below the open display's or the regular
@@ -124,7 +118,7 @@ def eye_verdict(report: Mapping[str, Any]) -> Verdict:
     green (pass) otherwise. The worst target and baseline are named. Without the eye
     distribution (null in the report) a note says that the figures are nominal only.
     """
-    block = report.get("eye_distribution")
+    block = report.eye_distribution
     if block is None:
         return Verdict(EYE_TOPIC, "info", NOT_JUDGED)
     variants, targets = block["variants"], block["targets"]
@@ -161,11 +155,11 @@ def eye_verdict(report: Mapping[str, Any]) -> Verdict:
                               if any(m < 0 and key == b for m, _, key in margins))
         return Verdict(EYE_TOPIC, "fail", text + f". Its 10th percentile is below that of "
                        f"{beaten}: for the worst tenth of eye states the plate does no better "
-                       f"than {beaten}.", _eye_fixes(report))
+                       f"than {beaten}.", _eye_fixes(report, block))
     if low < EYE_MARGIN_DB:
         return Verdict(EYE_TOPIC, "warn", text + f". Less than {EYE_MARGIN_DB:g} dB above a "
                        "baseline at the 10th percentile: a slightly worse part or eye loses the "
-                       "advantage.", _eye_fixes(report))
+                       "advantage.", _eye_fixes(report, block))
     return Verdict(EYE_TOPIC, "pass", text + f". At least {EYE_MARGIN_DB:g} dB above every "
                    "baseline judged the same way, for every target.")
 
@@ -226,11 +220,11 @@ def tolerance_verdict(tolerance: Mapping[str, Any],
                    "parts will not look like this report's nominal figures.", tuple(fixes))
 
 
-def _made_fixes(report: Mapping[str, Any] | None) -> tuple[str, ...]:
+def _made_fixes(report: Report | None) -> tuple[str, ...]:
     """What to change when the part as made does not beat the best regular array by
     MADE_MARGIN_DB, leaving out what the design already does."""
     optimizer = _optimizer(report)
-    process = None if report is None else report["fabrication"]["process"]
+    process = None if report is None else report.fabrication["process"]
     fixes = []
     if process != FINEST_PROCESS:
         fixes.append(f'Make it on printed photomask film ([process] name = "{FINEST_PROCESS}", '
@@ -246,7 +240,7 @@ def _made_fixes(report: Mapping[str, Any] | None) -> tuple[str, ...]:
     return tuple(fixes)
 
 
-def made_verdict(block: Mapping[str, Any], report: Mapping[str, Any] | None = None) -> Verdict:
+def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verdict:
     """The part as made (process errors, diffraction, the material's veil) over made copies x
     eye states against the best regular array the process makes at least as bright at the eye.
     report: the report holding the block, so that a fix the design already applied (its
@@ -278,7 +272,7 @@ def made_verdict(block: Mapping[str, Any], report: Mapping[str, Any] | None = No
                    _made_fixes(report))
 
 
-def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None,
+def verdicts(report: Report, diffraction_blur_px: float | None = None,
              diffraction_hole_mm: float | None = None) -> list[Verdict]:
     """Findings in plain language, most important first: the part over the eye distribution
     (`eye_verdict`), the part as made against the best regular array (`made_verdict`), the
@@ -290,64 +284,64 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
     diffraction_hole_mm: the hole diameter that blur is for; None takes the smallest hole.
     """
     lines: list[Verdict] = [eye_verdict(report)]
-    if report.get("made_part") is not None:
-        lines.append(made_verdict(report["made_part"], report))
+    if report.made_part is not None:
+        lines.append(made_verdict(report.made_part, report))
 
     def say(topic: str, text: str, level: str = "info") -> None:
         lines.append(Verdict(topic, level, text))
 
-    if report["tolerance"] is not None:
-        lines.append(tolerance_verdict(report["tolerance"], _optimizer(report)))
-    photometry = report.get("photometry")
+    if report.tolerance is not None:
+        lines.append(tolerance_verdict(report.tolerance, _optimizer(report)))
+    photometry = report.photometry
     if photometry is not None:
         lines += [light_verdict(photometry),
-                  contrast_verdict(photometry, report["fabrication"]["process"],
-                                   report.get("config", {}).get("process", {}))]
+                  contrast_verdict(photometry, report.fabrication["process"],
+                                   report.config.get("process", {}))]
     head = next(((v, words) for v, words in HEADLINE_VARIANTS
-                 if _mean(report, v) is not None), None)
+                 if report.mean(v) is not None), None)
     if head is not None:
         variant, words = head
-        psnr = _mean(report, variant)
+        psnr = report.mean(variant)
         assert psnr is not None
-        ssim = _mean(report, variant, "ssim")
+        ssim = report.mean(variant, "ssim")
         text = f"At the nominal eye point, {words.lower()}, the view scores {psnr:.1f} dB PSNR"
         text += "" if ssim is None else f" (SSIM {ssim:.2f})"
-        baselines = [(_mean(report, "open"), "the open display"),
-                     (_mean(report, "regular_pinholes"), "a regular pinhole array")]
+        baselines = [(report.mean("open"), "the open display"),
+                     (report.mean("regular_pinholes"), "a regular pinhole array")]
         compared = [_compare(psnr - value, what) for value, what in baselines if value is not None]
         say("nominal", text + (", " + " and ".join(compared) if compared else "") + ".")
-        optimized = _mean(report, "optimized")
+        optimized = report.mean("optimized")
         if variant != "optimized" and optimized is not None:
             cause = "Quantization and fabrication" if variant == "as_built" else "Quantization"
             cost = optimized - psnr
             say("fabrication cost", f"{cause} cost {cost:.1f} dB." if cost >= 0 else
                 f"{cause} cost nothing: the view is {-cost:.1f} dB better than the "
                 "optimized design's.")
-        efficiency = _mean(report, variant, "light_efficiency")
+        efficiency = report.mean(variant, "light_efficiency")
         if efficiency is not None and photometry is None:
             say("light", f"The eye sees {100 * efficiency:.2g} % of the light of the open "
                 "display.")
-    built = _mean(report, "as_built")
-    drawn, traced = _mean(report, "quantized"), _mean(report, "as_built_mesh")
+    built = report.mean("as_built")
+    drawn, traced = report.mean("quantized"), report.mean("as_built_mesh")
     if drawn is not None and traced is not None:
-        noise = report.get("mesh_retrace_stderr_rms")
-        agreement = report.get("mesh_retrace_agreement_db")
+        noise = report.mesh_retrace_stderr_rms
+        agreement = report.mesh_retrace_agreement_db
         say("mesh trace", "Traced through the written mesh (the holes as drawn), the view "
             f"scores {traced:.1f} dB ({traced - drawn:+.1f} dB from the hole layout's)"
             + (f"; the two views agree at {agreement:.1f} dB PSNR" if agreement else "")
             + (f"; Monte Carlo noise {noise:.2g} RMS per pixel: more rays per pixel sharpen "
                "this check (--mesh-samples)." if noise else "."))
-    diffracted = _mean(report, "as_built_diffraction")
+    diffracted = report.mean("as_built_diffraction")
     if built is not None and diffracted is not None:
         say("diffraction", f"With diffraction, the as-built view scores {diffracted:.1f} dB "
             f"({diffracted - built:+.1f} dB from the geometric trace).")
     hole_mm = diffraction_hole_mm
     if hole_mm is None:
-        hole_mm = report["fabrication"].get("smallest_hole_diameter_mm")
+        hole_mm = report.fabrication.get("smallest_hole_diameter_mm")
     if diffraction_blur_px is not None and hole_mm is not None:
         say("diffraction", f"Holes of {hole_mm:.3f} mm: diffraction blurs them by about "
             f"{diffraction_blur_px:.1f} view pixels.")
-    fabrication = report["fabrication"]
+    fabrication = report.fabrication
     violations = fabrication["violations"]
     if violations:
         counts: dict[str, int] = {}
@@ -359,7 +353,7 @@ def verdicts(report: Mapping[str, Any], diffraction_blur_px: float | None = None
     else:
         say("fabrication", f"The {fabrication['holes']} holes meet every rule of the "
             f"{fabrication['process']} process.")
-    mesh = report["mesh"]
+    mesh = report.mesh
     if mesh["watertight"]:
         per_hole = " (one per hole)" if mesh["genus"] == fabrication["holes"] else ""
         say("mesh", f"The mesh is watertight, genus {mesh['genus']}{per_hole}, "
