@@ -25,7 +25,7 @@ import aperture_fab
 from aperture_fab.config.config import Config
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.coupon import calibration_coupon, coupon_part
-from aperture_fab.fabrication.part import Part, make_part
+from aperture_fab.fabrication.part import Part
 from aperture_fab.io.files import write_atomic
 from aperture_fab.io.formats import holes_csv, stl_bytes, svg_text
 from aperture_fab.io.manifest import MANIFEST_NAME, publish, refuse_overwrite, staging
@@ -33,10 +33,10 @@ from aperture_fab.optics.scene import Scene
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,
     DESIGN_NAME,
-    check_design,
     check_sources,
     read_config,
     read_design,
+    saved_part,
 )
 from aperture_fab.report.assembly import (
     CAD_EXTRA,
@@ -104,10 +104,8 @@ def load_design_part(folder: Path) -> DesignPart:
     check_sources(config_path, design_path, "design")
     config = read_config(config_path)
     design = read_design(design_path)
-    check_design(design, config, config_path)
-    fabrication = config.fabrication
-    part = make_part(design.open_fraction, config.scene, fabrication)
-    return DesignPart(folder, config, fabrication, design.names, part)
+    part = saved_part(design, config, config.fabrication, config_path)
+    return DesignPart(folder, config, config.fabrication, design.names, part)
 
 
 def plate_geometry(folder: Path) -> PlateGeometry:

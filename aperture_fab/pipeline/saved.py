@@ -46,6 +46,7 @@ __all__ = [
     "part_kind",
     "read_config",
     "read_design",
+    "saved_part",
 ]
 
 PartKind = Literal["design", "holes", "mesh"]
@@ -199,6 +200,15 @@ def check_design(design: SavedDesign, config: Config, config_path: Path) -> None
             " give the config the design was made with (its design.toml).")
 
 
+def saved_part(design: SavedDesign, config: Config, fabrication: FabricationSettings,
+               config_path: Path) -> Part:
+    """The part a saved design makes with the process, once it is checked to belong to the
+    config (`check_design`): quantized and built by make_part (its violations are those
+    quantize resolved)."""
+    check_design(design, config, config_path)
+    return make_part(design.open_fraction, config.scene, fabrication)
+
+
 def _converge_mm(scene: Scene) -> tuple[float, float, float] | None:
     """The point chief-ray holes aim at (ex, ey, D), as make_part places it; None if straight."""
     if scene.plate.hole_axis != "chief_ray":
@@ -290,9 +300,7 @@ def load_part(path: Path, kind: PartKind, config: Config, fabrication: Fabricati
     check_sources(config_path, path, kind)
     scene, process = config.scene, fabrication.process
     if kind == "design":
-        design = read_design(path)
-        check_design(design, config, config_path)
-        return make_part(design.open_fraction, scene, fabrication)
+        return saved_part(read_design(path), config, fabrication, config_path)
     if kind == "holes":
         blank = _blank_layout(scene, process)
         try:
