@@ -143,6 +143,11 @@ def test_design_writes_outputs_and_prints_the_psnr_table(
     expected += [report["metrics"][v]["per_target"]["marker"]["psnr_db"]
                  for v in ("quantized", "as_built")]
     np.testing.assert_allclose(shown, expected, atol=0.006)
+    # The baselines are rendered once (validation.validate.baseline_views): the same figures in
+    # design.json and in the report.
+    for variant in ("open", "regular_pinholes"):
+        assert summary["metrics"][variant]["psnr_db"] == [
+            report["metrics"][variant]["per_target"]["marker"]["psnr_db"]]
     with np.load(folder / "design.npz") as npz:
         assert npz["open_fraction"].shape == (16, 16)
 

@@ -21,7 +21,7 @@ from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain
 from aperture_fab.validation.judge import judge
-from aperture_fab.validation.validate import Validation, validate
+from aperture_fab.validation.validate import BASELINES, Validation, validate
 
 if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult
@@ -46,7 +46,8 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
     open_fraction, displays = result.design.optimum
     checked = validate(result.config, result.targets, displays, open_fraction, result.part,
                        fabrication.process, result.names, settings, mesh,
-                       built_displays=result.built_displays)
+                       built_displays=result.built_displays,
+                       baselines={k: result.views[k] for k in BASELINES})
     start = time.perf_counter()
     shown = result.design.displays if result.built_displays is None else result.built_displays
     report = judge(result.config, result.names, result.targets, shown, result.part,

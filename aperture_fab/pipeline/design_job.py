@@ -25,11 +25,10 @@ from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.files import load_targets, output_folder, write_atomic
 from aperture_fab.io.formats import FormatName
-from aperture_fab.io.images import TargetOptions, prepare_targets, resample
+from aperture_fab.io.images import TargetOptions, prepare_targets
 from aperture_fab.io.manifest import publish, remove_listed, staging
 from aperture_fab.metrics import gain_mse, psnr_db
 from aperture_fab.optics.as_made import white_transmission
-from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.device import resolve_device, torch_dtype
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
@@ -59,7 +58,7 @@ from aperture_fab.pipeline.design_files import (
 )
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.report import Report, Verdict, eye_headline
-from aperture_fab.validation.validate import Validation, layout_fractions
+from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
 
 if TYPE_CHECKING:
     from aperture_fab.report.evidence import Evidence
@@ -296,15 +295,13 @@ def evaluate(
     variants: dict[str, tuple[np.ndarray, np.ndarray]],
 ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, list[float]]]]:
     """Views (T, P, C, ny, nx) and gain-corrected metrics (nominal eye position) for plate
-    variants {name: (open fractions, displays)}, plus the open display (showing the target)
-    and a regular pinhole array showing elemental images."""
+    variants {name: (open fractions, displays)}, plus the baselines (`baseline_views`: the open
+    display showing the target and a regular pinhole array showing elemental images)."""
     scene = config.scene
     device = resolve_device(config.optimizer.device)
     dtype = torch_dtype(config.optimizer.precision)
     renderer = Renderer(scene, device=device, dtype=dtype)
     positions = range(len(scene.eye.positions_mm))
-    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
-    array = regular_pinholes(scene)
     views: dict[str, np.ndarray] = {}
     with torch.no_grad():
         for name, (a, displays) in variants.items():
@@ -314,33 +311,13 @@ def evaluate(
                           .cpu().double().numpy() for p in positions])
                 for d in displays
             ])
-        # The open display shows the target itself: the best it can do without a plate.
-        views["open"] = np.stack([
-            np.stack([render_open(scene, t, p).cpu().double().numpy() for p in positions])
-            for t in _display_targets(scene.display.pixels, target_t)
-        ])
-        pin_a = torch.as_tensor(array.open_fraction, dtype=dtype, device=device)
-        # One display for all eye positions (for the nominal one), like the design's.
-        pin_displays = [elemental_display(scene, array, t) for t in target_t]
-        views["regular_pinholes"] = np.stack([
-            np.stack([renderer.render(pin_a, d, p).cpu().double().numpy() for p in positions])
-            for d in pin_displays
-        ])
+    views.update(baseline_views(renderer, targets))
     metrics: dict[str, dict[str, list[float]]] = {}
     for name, v in views.items():
         mse = [float(gain_mse(torch.as_tensor(v[t, 0]), torch.as_tensor(targets[t])))
                for t in range(len(targets))]
         metrics[name] = {"mse": mse, "psnr_db": [psnr_db(m) for m in mse]}
     return views, metrics
-
-
-def _display_targets(size: tuple[int, int], targets: torch.Tensor) -> torch.Tensor:
-    """Targets resampled onto a display grid of `size` (W, H) pixels, (T, C, H, W)."""
-    return torch.stack([
-        torch.as_tensor(resample(t.cpu().double().numpy(), size), dtype=targets.dtype,
-                        device=targets.device)
-        for t in targets
-    ])
 
 
 def recorded_config(config: Config, fabrication: FabricationSettings | None,

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -72,7 +73,7 @@ from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
 
-__all__ = ["Validation", "layout_fractions", "validate"]
+__all__ = ["BASELINES", "Validation", "baseline_views", "layout_fractions", "validate"]
 
 #: Eye states each tolerance sample of a moving-eye design is judged over.
 TOLERANCE_EYE_STATES = 8
@@ -120,6 +121,33 @@ def _render_all(renderer: Renderer, a: np.ndarray, displays: list[torch.Tensor],
         ])
 
 
+#: The variants `baseline_views` renders: what the part is compared with, whatever it is.
+BASELINES = ("open", "regular_pinholes")
+
+
+def baseline_views(renderer: Renderer, targets: np.ndarray) -> dict[str, np.ndarray]:
+    """The baselines' views (T, P, C, ny, nx) at every eye position of the renderer's scene:
+    the open display showing each target ("open", the best it can do without a plate) and the
+    regular pinhole array showing its elemental images ("regular_pinholes").
+
+    targets: (T, C, ny, nx) linear, on the view grid."""
+    scene, dtype, device = renderer.scene, renderer.dtype, renderer.device
+    positions = range(len(scene.eye.positions_mm))
+    on_display = [torch.as_tensor(resample(t, scene.display.pixels), dtype=dtype, device=device)
+                  for t in targets]
+    pinholes = regular_pinholes(scene)
+    with torch.no_grad():
+        views = {"open": np.stack([
+            np.stack([render_open(scene, d, p).cpu().double().numpy() for p in positions])
+            for d in on_display
+        ])}
+    views["regular_pinholes"] = _render_all(
+        renderer, pinholes.open_fraction,
+        [elemental_display(scene, pinholes, torch.as_tensor(t, dtype=dtype, device=device))
+         for t in targets], positions)
+    return views
+
+
 def validate(
     config: Config,
     targets: np.ndarray,
@@ -132,6 +160,7 @@ def validate(
     mesh: PlateMesh | None = None,
     *,
     built_displays: np.ndarray | None = None,
+    baselines: Mapping[str, np.ndarray] | None = None,
 ) -> Validation:
     """Validate a design and its part.
 
@@ -140,6 +169,8 @@ def validate(
     displays), used for every variant made from the part.
     open_fraction: (rows, cols) the optimized design before quantization.
     mesh: the mesh as written and re-read (default: part.mesh).
+    baselines: `baseline_views` of these targets when the caller rendered them already (the
+    design job has); None renders them.
     """
     scene = config.scene
     device = resolve_device(config.optimizer.device)
@@ -156,17 +187,7 @@ def validate(
     rng = np.random.default_rng(settings.seed)
     quantized = layout_fractions(part.layout)
     as_built = layout_fractions(part.layout, process.radius_bias_mm)
-    pinholes = regular_pinholes(scene)
-    target_views = [torch.as_tensor(t, dtype=dtype, device=device) for t in targets]
-    views: dict[str, np.ndarray] = {}
-    with torch.no_grad():
-        views["open"] = np.stack([
-            np.stack([render_open(scene, d, p).cpu().double().numpy() for p in positions])
-            for d in on_display
-        ])
-    views["regular_pinholes"] = _render_all(
-        renderer, pinholes.open_fraction,
-        [elemental_display(scene, pinholes, t) for t in target_views], positions)
+    views = dict(baseline_views(renderer, targets) if baselines is None else baselines)
     random_mask = rng.uniform(0, scene.plate.max_open_fraction, open_fraction.shape)
     views["random"] = _render_all(renderer, random_mask, on_display, positions)
     views["optimized"] = _render_all(renderer, open_fraction, designed, positions)
@@ -203,14 +224,15 @@ def validate(
     if settings.eye_states > 0:
         start = time.perf_counter()
         as_numpy = [d.cpu().double().numpy() for d in shown]
+        pinholes = regular_pinholes(scene)
         eyes = judge_eyes(scene, targets, {
             "as_built": Variant(as_built, np.stack(as_numpy)),
             "optimized": Variant(open_fraction, np.stack([d.cpu().double().numpy()
                                                           for d in designed])),
             "open": Variant(None, np.stack([d.cpu().double().numpy() for d in on_display])),
             "regular_pinholes": Variant(pinholes.open_fraction, np.stack([
-                elemental_display(scene, pinholes, t).cpu().double().numpy()
-                for t in target_views])),
+                elemental_display(scene, pinholes, torch.as_tensor(t, dtype=dtype, device=device))
+                .cpu().double().numpy() for t in targets])),
         }, device=device, dtype=dtype, count=settings.eye_states)
         timings["eye_distribution_s"] = time.perf_counter() - start
     made_part = None
