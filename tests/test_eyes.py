@@ -248,12 +248,6 @@ def test_nominal_grid_and_sweeps() -> None:
     point_states, point_inside = EyeDistribution().eyebox_grid(3)
     assert point_inside.all() and np.all(point_states.offset_mm == 0)
 
-    pupils = dist.pupil_sweep(4)
-    assert pupils.pupil_mm.tolist() == [3.0, 4.0, 5.0, 6.0]
-    assert np.all(pupils.offset_mm == [1.0, 0.0]) and np.all(pupils.focus_diopters == 0.25)
-    assert dist.focus_sweep(3).focus_diopters.tolist() == [0.0, 0.25, 0.5]
-    assert dist.pupil_sweep(1).pupil_mm.tolist() == [4.0]
-
 
 def test_is_point() -> None:
     assert EyeDistribution().is_point

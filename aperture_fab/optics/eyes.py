@@ -285,18 +285,6 @@ class EyeDistribution:
             weight = np.full(count, 1.0 / count)
         return EyeStates(offset, pupil, focus, gaze, weight)
 
-    def _fixed(self, count: int, *, pupil_mm: np.ndarray | None = None,
-               focus_diopters: np.ndarray | None = None) -> EyeStates:
-        """`count` nominal states, with pupils or focuses replaced when given."""
-        return EyeStates(
-            np.tile(np.asarray(self.centre_mm), (count, 1)),
-            np.full(count, self.nominal_pupil_mm) if pupil_mm is None else pupil_mm,
-            np.full(count, self.nominal_focus_diopters) if focus_diopters is None
-            else focus_diopters,
-            np.zeros((count, 2)),
-            np.full(count, 1.0 / count),
-        )
-
     # -- batches ------------------------------------------------------------------------------
 
     def sample(self, count: int, seed: int) -> EyeStates:
@@ -312,7 +300,10 @@ class EyeDistribution:
 
     def nominal(self) -> EyeStates:
         """The one nominal state: centre, nominal pupil and focus, no gaze."""
-        return self._fixed(1)
+        return EyeStates(np.asarray([self.centre_mm], dtype=float),
+                         np.array([self.nominal_pupil_mm]),
+                         np.array([self.nominal_focus_diopters]), np.zeros((1, 2)),
+                         np.ones(1))
 
     def evaluation_states(self, count: int, seed: int = 0) -> EyeStates:
         """A fixed low-discrepancy set of `count` states covering the distribution (equal
@@ -379,22 +370,6 @@ class EyeDistribution:
                            np.full(count, self.nominal_focus_diopters), np.zeros((count, 2)),
                            weight)
         return states, inside
-
-    def pupil_sweep(self, n: int) -> EyeStates:
-        """n pupils evenly over the range, lo to hi (n = 1: the nominal), at the nominal
-        position and focus, equal weights."""
-        _check_count("pupil_sweep", n)
-        pupils = (np.array([self.nominal_pupil_mm]) if n == 1
-                  else np.linspace(*self.pupil_range_mm, n))
-        return self._fixed(n, pupil_mm=pupils)
-
-    def focus_sweep(self, n: int) -> EyeStates:
-        """n accommodations evenly over the range in diopters, lo to hi (n = 1: the nominal),
-        at the nominal position and pupil, equal weights."""
-        _check_count("focus_sweep", n)
-        focus = (np.array([self.nominal_focus_diopters]) if n == 1
-                 else np.linspace(*self.focus_range_diopters, n))
-        return self._fixed(n, focus_diopters=focus)
 
 
 _MAX_STATES = 10_000_000
