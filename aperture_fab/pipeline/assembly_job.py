@@ -48,8 +48,7 @@ from aperture_fab.report.assembly import (
 )
 
 __all__ = ["ASSEMBLY_NAME", "SHEET_NAMES", "DesignPart", "PlateGeometry", "display_pngs",
-           "command_setup", "load_design_part", "plate_geometry", "run_assembly", "sheet_files",
-           "write_assembly"]
+           "command_setup", "load_design_part", "plate_geometry", "run_assembly", "sheet_files"]
 
 ASSEMBLY_NAME = "assembly.html"
 #: Every file of the sheet's set, written into the design folder.
@@ -161,18 +160,6 @@ def sheet_files(part: Part, scene: Scene, fabrication: FabricationSettings,
                              corner_cut_mm=coupon.corner_cut_mm).encode(),
         COUPON_CSV: holes_csv(coupon.layout).encode(),
     }
-
-
-def write_assembly(folder: Path, part: Part, scene: Scene, fabrication: FabricationSettings,
-                   names: Sequence[str], design_folder: Path, displays: Mapping[str, bytes]
-                   ) -> list[Path]:
-    """Write the sheet's set (sheet_files) into `folder`, a design job's staging folder, for
-    its part; design_folder: where the design is published (the sheet's commands run there);
-    displays: the display PNGs the job wrote, name -> bytes."""
-    files = sheet_files(part, scene, fabrication, names, design_folder, displays)
-    for name, data in files.items():
-        write_atomic(folder / name, data)
-    return [folder / name for name in files]
 
 
 def _add_to_set(folder: Path, files: dict[str, bytes]) -> None:

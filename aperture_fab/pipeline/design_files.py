@@ -1,5 +1,6 @@
-"""The files of a design folder: the part in every format, design.npz and its pictures,
-design.json, and the report of the part as written."""
+"""The files of a design folder as bytes: the part in every format, design.npz and its
+pictures, design.json, and the report of the part as written (`run_design` writes them, once;
+`write_part` is the export job's, which writes each format as it is made)."""
 
 from __future__ import annotations
 
@@ -27,8 +28,8 @@ if TYPE_CHECKING:  # the job's value; design_job imports this module
     from aperture_fab.pipeline.design_job import DesignResult
     from aperture_fab.report.evidence import Evidence
 
-__all__ = ["evidence_files", "judge_written", "part_bytes", "part_formats",
-           "write_outputs", "write_part", "write_summary"]
+__all__ = ["design_outputs", "evidence_files", "judge_written", "part_bytes", "part_formats",
+           "summary_json", "write_part"]
 
 
 def judge_written(result: DesignResult, fabrication: FabricationSettings,
@@ -116,10 +117,10 @@ def write_part(folder: Path, part: Part, fabrication: FabricationSettings,
     return written
 
 
-def write_outputs(folder: Path, result: DesignResult) -> dict[str, bytes]:
-    """design.npz, design.toml, display and view PNGs, loss curve (design.json comes last,
-    `write_summary`, with the figures of the part as written). Returns each target's display
-    PNG, name -> bytes (the assembly sheet shows them)."""
+def design_outputs(result: DesignResult) -> dict[str, bytes]:
+    """The design's own files, name -> bytes, in the order written: design.npz, design.toml,
+    per target its display, target and view PNGs, loss.png (design.json comes last,
+    `summary_json`, with the figures of the part as written)."""
     from aperture_fab.report.figures import figure_loss
 
     d = result.design
@@ -133,21 +134,19 @@ def write_outputs(folder: Path, result: DesignResult) -> dict[str, bytes]:
     if d.continuous is not None:
         arrays["continuous_open_fraction"], arrays["continuous_displays"] = d.continuous
     np.savez_compressed(buffer, **arrays)
-    write_atomic(folder / "design.npz", buffer.getvalue())
-    write_atomic(folder / "design.toml", to_toml(result.config))
-    displays = {name: encode_png(shown[t]) for t, name in enumerate(result.names)}
+    files = {"design.npz": buffer.getvalue(), "design.toml": to_toml(result.config).encode()}
     for t, name in enumerate(result.names):
-        write_atomic(folder / f"display_{name}.png", displays[name])
-        write_atomic(folder / f"target_{name}.png", encode_png(result.targets[t]))
+        files[f"display_{name}.png"] = encode_png(shown[t])
+        files[f"target_{name}.png"] = encode_png(result.targets[t])
         for variant in ("initial", "optimized", "open", "regular_pinholes"):
             view = result.views[variant][t, 0]
             scaled = view * gain(view, result.targets[t])
-            write_atomic(folder / f"view_{variant}_{name}.png", encode_png(np.clip(scaled, 0, 1)))
-    write_atomic(folder / "loss.png", figure_loss(d.loss_history))
-    return displays
+            files[f"view_{variant}_{name}.png"] = encode_png(np.clip(scaled, 0, 1))
+    files["loss.png"] = figure_loss(d.loss_history)
+    return files
 
 
-def write_summary(folder: Path, result: DesignResult) -> None:
+def summary_json(result: DesignResult) -> bytes:
     """design.json: the run's numbers (metrics as they are so far) and its config."""
     d = result.design
     summary = {
@@ -161,7 +160,7 @@ def write_summary(folder: Path, result: DesignResult) -> None:
         "fabrication": None if result.part is None else _part_summary(result.part),
         "config": to_dict(result.config),
     }
-    write_atomic(folder / "design.json", json.dumps(summary, indent=2))
+    return json.dumps(summary, indent=2).encode()
 
 
 def _part_summary(part: Part) -> dict[str, Any]:

@@ -49,12 +49,12 @@ from aperture_fab.pipeline.checkpoint import (
     sha256,
 )
 from aperture_fab.pipeline.design_files import (
+    design_outputs,
     evidence_files,
     judge_written,
     part_bytes,
     part_formats,
-    write_outputs,
-    write_summary,
+    summary_json,
 )
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.report import Report, Verdict, eye_headline
@@ -398,21 +398,24 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
         save_checkpoint(folder, stop.state, inputs)
         raise
     staged = on_staged if on_staged is not None else (lambda _stage: None)
-    with staging(folder) as stage_folder:
-        display_pngs = write_outputs(stage_folder, result)
-        staged(stage_folder)
-        for name, data in result.part_files.items():
-            write_atomic(stage_folder / name, data)
-            staged(stage_folder)
-        for name, data in result.report_files.items():
-            write_atomic(stage_folder / name, data)
-        write_summary(stage_folder, result)  # with the figures of the part as written
-        staged(stage_folder)
-        if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
-            from aperture_fab.pipeline.assembly_job import write_assembly
+    own = design_outputs(result)
+    sheet: dict[str, bytes] = {}
+    if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
+        from aperture_fab.pipeline.assembly_job import sheet_files
 
-            write_assembly(stage_folder, result.part, result.config.scene, fabrication,
-                           result.names, folder.resolve(), display_pngs)
+        sheet = sheet_files(result.part, result.config.scene, fabrication, result.names,
+                            folder.resolve(),
+                            {name: own[f"display_{name}.png"] for name in result.names})
+    # Staged in groups, the part one file at a time (the test seam pauses after each group).
+    groups = [own, *({name: data} for name, data in result.part_files.items()),
+              {**result.report_files, "design.json": summary_json(result)}]
+    with staging(folder) as stage_folder:
+        for group in groups:
+            for name, data in group.items():
+                write_atomic(stage_folder / name, data)
+            staged(stage_folder)
+        for name, data in sheet.items():
+            write_atomic(stage_folder / name, data)
         publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
     for stale in validated:  # they judged the design just replaced
         remove_listed(stale)
