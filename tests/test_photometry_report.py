@@ -224,15 +224,19 @@ def test_light_block_uses_the_configs_photometry() -> None:
     validation = SimpleNamespace(metrics={"as_built": {"a": {"light_efficiency": 0.002}}})
     displays = np.full((1, 3, 4, 4), 0.5)
     process = PROCESSES["etched-foil"]
-    good = light_block(config, validation, displays, process, 0.1)  # type: ignore[arg-type]
+
+    def block(settings: PhotometrySettings) -> dict[str, Any] | None:
+        return light_block(settings, config.optimizer, config.scene.eye,
+                           validation, displays, process, 0.1)  # type: ignore[arg-type]
+
+    good = block(config.photometry)
     assert good is not None and good["panel_luminance_cd_m2"] == 500.0
     assert good["leakage"]["optical_density"] == 6.0
-    bright = dataclasses.replace(config, photometry=PhotometrySettings(2000.0))
-    lit = light_block(bright, validation, displays, process, 0.1)  # type: ignore[arg-type]
+    lit = block(PhotometrySettings(2000.0))
     assert lit is not None and lit["view_luminance_cd_m2"] == pytest.approx(
         2000 * 0.5 * 0.002)
     validation.metrics["as_built"]["a"]["light_efficiency"] = None
-    assert light_block(config, validation, displays, process, 0.1) is None  # type: ignore[arg-type]
+    assert block(config.photometry) is None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -168,7 +168,9 @@ def design(
                       state=state, on_checkpoint=on_checkpoint, progress=progress)
     timings["optimize_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    views, metrics = evaluate(config, targets, {
+    renderer = Renderer(scene, device=resolve_device(settings.device),
+                        dtype=torch_dtype(settings.precision))
+    views, metrics = evaluate(renderer, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
         "optimized": result.optimum,
     })
@@ -290,17 +292,15 @@ def check_light_floor(scene: Scene, settings: OptimizerSettings,
 
 
 def evaluate(
-    config: Config,
+    renderer: Renderer,
     targets: np.ndarray,
     variants: dict[str, tuple[np.ndarray, np.ndarray]],
 ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, list[float]]]]:
-    """Views (T, P, C, ny, nx) and gain-corrected metrics (nominal eye position) for plate
-    variants {name: (open fractions, displays)}, plus the baselines (`baseline_views`: the open
-    display showing the target and a regular pinhole array showing elemental images)."""
-    scene = config.scene
-    device = resolve_device(config.optimizer.device)
-    dtype = torch_dtype(config.optimizer.precision)
-    renderer = Renderer(scene, device=device, dtype=dtype)
+    """Views (T, P, C, ny, nx) through the renderer's scene and gain-corrected metrics (nominal
+    eye position) for plate variants {name: (open fractions, displays)}, plus the baselines
+    (`baseline_views`: the open display showing the target and a regular pinhole array showing
+    elemental images)."""
+    scene, device, dtype = renderer.scene, renderer.device, renderer.dtype
     positions = range(len(scene.eye.positions_mm))
     views: dict[str, np.ndarray] = {}
     with torch.no_grad():

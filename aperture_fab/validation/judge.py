@@ -16,11 +16,14 @@ from typing import Any
 import numpy as np
 
 from aperture_fab.config.config import Config
+from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.config.stages import PhotometrySettings
 from aperture_fab.config.written import to_dict
 from aperture_fab.fabrication.layout import layout_stats
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import Process
 from aperture_fab.metrics import agreement_db, gain_psnr_db
+from aperture_fab.optics.scene import Eye
 from aperture_fab.validation.light import content_level, photometry_block
 from aperture_fab.validation.report import Report, build_report, scene_dict
 from aperture_fab.validation.robustness import PERCENTILES, EyeQuality
@@ -57,18 +60,18 @@ def run_block(part_file: str, process: str, command: Sequence[str] | str | None,
     return {"part": part_file, "process": process, "date": when, "command": line}
 
 
-def light_block(config: Config, validation: Validation, displays: np.ndarray, process: Process,
+def light_block(settings: PhotometrySettings, optimizer: OptimizerSettings, eye: Eye,
+                validation: Validation, displays: np.ndarray, process: Process,
                 open_share: float) -> dict[str, Any] | None:
-    """report.json's "photometry" block for the part as built (None when its light efficiency
-    was not computed)."""
+    """report.json's "photometry" block for the part as built, seen by `eye`, with the
+    optimizer's light floor and weight (None when its light efficiency was not computed)."""
     per_target = validation.metrics.get("as_built", {})
     values = [m["light_efficiency"] for m in per_target.values()]
     if not values or any(v is None or not math.isfinite(v) for v in values):
         return None
-    eye, optimizer = config.scene.eye, config.optimizer
     return photometry_block(
         efficiency=float(np.mean(values)), level=content_level(displays),
-        settings=config.photometry,
+        settings=settings,
         assumed_pupil_mm=eye.pupil_mm, fov_deg=(eye.fov_deg[0], eye.fov_deg[1]),
         min_efficiency=optimizer.min_efficiency, efficiency_weight=optimizer.efficiency_weight,
         min_eye_level=optimizer.min_eye_level,
@@ -153,8 +156,9 @@ def judge(config: Config, names: tuple[str, ...], targets: np.ndarray, displays:
                           eye_distribution=None if eyes is None else eye_distribution_block(
                               eyes, names, targets),
                           run=run_block(part_file, process.name, command, date),
-                          photometry=light_block(config, validation, displays, process,
-                                                 float(stats["open_area_fraction"])),
+                          photometry=light_block(config.photometry, config.optimizer,
+                                                 config.scene.eye, validation, displays,
+                                                 process, float(stats["open_area_fraction"])),
                           made_part=validation.made_part)
     if validation.mesh_stderr is not None:
         views = validation.views
