@@ -357,6 +357,7 @@ def test_the_readme_in_memory_example_runs(tmp_path: Path, monkeypatch: pytest.M
     checked = check_mesh(read_stl(made.part_files["plate.stl"]))  # the bytes are the part
     assert checked.watertight and checked.genus == made.part.layout.count > 0
     assert made.verdicts and made.verdicts == made.report.verdicts
+    assert made.report.level in ("pass", "warn", "fail")
     assert set(made.report_files) == {"report.json", "report.html", "views.npz"}
     assert json.loads(made.report_files["report.json"]) == made.report.as_json()
     assert list(tmp_path.iterdir()) == []  # nothing written

@@ -28,8 +28,14 @@ from aperture_fab.validation.light import (
     light_verdict,
     photometry_block,
 )
-from aperture_fab.validation.report import Report, build_report, report_json, validate_report
-from aperture_fab.validation.verdicts import overall_level, verdicts
+from aperture_fab.validation.report import (
+    Report,
+    build_report,
+    overall_level,
+    report_json,
+    validate_report,
+)
+from aperture_fab.validation.verdicts import verdicts
 from tests.test_report import complete_inputs, judged
 
 #: The near-eye preset's field of view (deg) and the issue's example: 0.16 % of a 500 cd/m2

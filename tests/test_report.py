@@ -627,6 +627,7 @@ def test_the_default_designs_fixes_leave_out_everything_it_does() -> None:
     for _, _, _, fix in APPLIED[:1] + APPLIED[2:]:
         assert not any(fix.lower() in f.lower() for f in fixes), fix
     acting = [v for v in verdicts(Report.from_json(report)) if v.level in ("fail", "warn")]
+    assert judged(report).level == "fail"
     assert {v.topic for v in acting} == {"eye distribution", "made part", "tolerance", "light",
                                          "contrast"}
     assert all(v.fixes for v in acting)
@@ -661,6 +662,7 @@ def test_the_page_recommends_one_fix_first_then_lists_the_others() -> None:
 def test_a_passing_report_recommends_nothing(report: dict[str, Any]) -> None:
     lines = verdicts(Report.from_json(report))
     assert fix_plan(lines) == FixPlan(None, None, ())
+    assert judged(report).level == "pass" and Report.from_json(report).level == "info"
     page = report_html(judged(report), {})
     assert 'id="recommended-fix"' not in page and 'id="other-fixes"' not in page
 

@@ -30,8 +30,7 @@ from aperture_fab.cli import (
     EXIT_USAGE,
     main,
 )
-from aperture_fab.validation.report import Verdict
-from aperture_fab.validation.verdicts import overall_level
+from aperture_fab.validation.report import Verdict, overall_level
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -186,7 +186,7 @@ def _print_eye_table(headline: dict[str, Any], names: Sequence[str]) -> None:
 class Judgement:
     """A report's overall verdict, for the exit status and the one-line result.
 
-    level: fail, warn, pass or info: the report page's headline (report_html.overall_level, its
+    level: fail, warn, pass or info: the report page's headline (`overall_level`, its
     worst judged verdict), so the terminal and the page always agree. deciding: the first
     verdict at that level (the report lists the most important first), None for info.
     count: how many verdicts are at that level.
@@ -198,7 +198,7 @@ class Judgement:
 
     @classmethod
     def of(cls, verdicts: Sequence[Verdict]) -> Judgement:
-        from aperture_fab.validation.verdicts import overall_level
+        from aperture_fab.validation.report import overall_level
 
         level = overall_level(verdicts)
         at_level = [v for v in verdicts if v.level == level]

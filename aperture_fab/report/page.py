@@ -40,18 +40,18 @@ from aperture_fab.validation.report import (
     EYE_VARIANT_LABELS,
     EYE_VARIANTS,
     FIGURE_KEYS,
+    JUDGED,
     LEVELS,
     SCHEMA_VERSION,
     Report,
     Verdict,
+    overall_level,
 )
 from aperture_fab.validation.verdicts import (
-    JUDGED,
     LEVEL_WORDS,
     FixPlan,
     describe_distribution,
     fix_plan,
-    overall_level,
 )
 
 __all__ = ["CSP", "MAX_PAGE_HEIGHT_PX", "PAIRED_SECTIONS", "SECTION_TITLES", "WINDOW_WIDTH_PX",

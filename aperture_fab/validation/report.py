@@ -120,6 +120,7 @@ __all__ = [
     "EYE_VARIANTS",
     "EYE_VARIANT_LABELS",
     "LEVELS",
+    "JUDGED",
     "Report",
     "Verdict",
     "eye_headline",
@@ -134,6 +135,7 @@ __all__ = [
     "report_json",
     "views_npz",
     "json_ready",
+    "overall_level",
 ]
 
 VARIANT_LABELS: dict[str, str] = {name: v.label for name, v in VARIANTS.items()}
@@ -192,6 +194,10 @@ VIEW_KEY = re.compile(r"(?P<variant>[a-z_]+)/(?P<target>[^/]+)(/pos(?P<pos>\d+))
 # Verdicts
 
 
+#: Judged levels, worst first (info is a finding without a judgement).
+JUDGED = ("fail", "warn", "pass")
+
+
 @dataclass(frozen=True)
 class Verdict:
     """One finding of the report: its topic, level (one of LEVELS), plain-language text (what
@@ -216,6 +222,11 @@ class Verdict:
     def from_dict(cls, data: Mapping[str, Any]) -> Verdict:
         """A verdict from report.json ("fixes" absent in older reports)."""
         return cls(data["topic"], data["level"], data["text"], tuple(data.get("fixes", ())))
+
+
+def overall_level(lines: Sequence[Verdict]) -> str:
+    """A report's verdict: its worst judged level (fail, warn, pass), or info when none is."""
+    return next((level for level in JUDGED if any(v.level == level for v in lines)), "info")
 
 
 #: Top-level keys a report may carry after the blocks, in the order written: the mesh
@@ -289,6 +300,12 @@ class Report:
             "metrics", "fabrication", "mesh", "tolerance", "timings_s", "scene", "config",
             "versions", "eye_distribution", "run", "photometry", "made_part", *_TRAILING)}
         return cls(**fields, verdicts=tuple(Verdict.from_dict(v) for v in data["verdicts"]))
+
+    @property
+    def level(self) -> str:
+        """The report's verdict, its page's headline: the worst judged level of its verdicts
+        (fail, warn, pass), or info when none is judged."""
+        return overall_level(self.verdicts)
 
     def with_timing(self, stage: str, seconds: float) -> Report:
         """The report with one more stage timed."""

@@ -18,9 +18,9 @@ from aperture_fab.validation.light import contrast_verdict, light_verdict, lower
 from aperture_fab.validation.report import EYE_TOPIC, LEVELS, Report, Verdict
 from aperture_fab.validation.variants import EYE_BASELINES
 
-__all__ = ["EYE_MARGIN_DB", "JUDGED", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
+__all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
            "YIELD_PASS", "YIELD_WARN", "FixPlan", "describe_distribution", "eye_verdict",
-           "fix_plan", "made_verdict", "overall_level", "tolerance_verdict", "tracked_fix",
+           "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix",
            "verdicts", "yield_interval"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
@@ -32,8 +32,6 @@ HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
 EYE_MARGIN_DB = 1.0
 #: What the page and the terminal call each level.
 LEVEL_WORDS = {"fail": "FAIL", "warn": "WARN", "pass": "PASS", "info": "NOTE"}
-#: Judged levels, worst first (info is a finding without a judgement).
-JUDGED = ("fail", "warn", "pass")
 #: Tolerance yield: at least YIELD_PASS passes, at least YIELD_WARN warns, less fails.
 YIELD_PASS = 0.9
 YIELD_WARN = 0.5
@@ -403,7 +401,3 @@ def fix_plan(lines: Sequence[Verdict]) -> FixPlan:
                 alternatives.append((verdict.topic, fix))
     return FixPlan(recommended, deciding, tuple(alternatives))
 
-
-def overall_level(lines: Sequence[Verdict]) -> str:
-    """A report's verdict: its worst judged level (fail, warn, pass), or info when none is."""
-    return next((level for level in JUDGED if any(v.level == level for v in lines)), "info")
