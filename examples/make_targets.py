@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 from aperture_fab.io.images import encode_png
 from aperture_fab.targets import EXAMPLES
 

@@ -633,7 +633,7 @@ def deadline(seconds: float) -> Iterator[None]:
 
 
 def leftovers(folder: Path) -> list[Path]:
-    """Temporary files (write_atomic's .NAME.<hex>.tmp) left anywhere under folder."""
+    """Temporary files (write_atomic's .NAME.<pid>-<hex>.tmp) left anywhere under folder."""
     return [p for p in folder.rglob("*.tmp") if p.is_file()]
 
 

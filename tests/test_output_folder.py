@@ -360,3 +360,31 @@ def test_a_run_killed_during_export_leaves_the_old_set_or_the_new(
     assert design_cli(folder, "--no-validate") == 0
     assert not list(folder.glob(".staging-*"))
     check_folder(folder)
+
+
+def test_a_dead_writers_temporary_file_is_removed_and_a_live_ones_kept(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run killed while writing into the folder itself (its checkpoint) leaves write_atomic's
+    temporary file; the next run's staging removes it, by its writer's pid, and leaves alone a
+    file another run is still writing."""
+    from aperture_fab.io.atomic import TEMPORARY_NAME, write_atomic
+    from aperture_fab.io.manifest import staging
+
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True, check=True)
+    dead = tmp_path / f".checkpoint.pt.{int(child.stdout)}-0123456789ab.tmp"
+    live = tmp_path / f".checkpoint.pt.{os.getpid()}-0123456789ab.tmp"
+    other = tmp_path / ".notes.tmp"  # not write_atomic's: the user's
+    for path in (dead, live, other):
+        path.write_bytes(b"partial")
+        assert TEMPORARY_NAME.fullmatch(path.name) or path is other
+    with staging(tmp_path):
+        pass
+    assert not dead.exists() and live.exists() and other.exists()
+    renamed: list[str] = []  # write_atomic's own temporary names are the ones matched
+    replace = os.replace
+    monkeypatch.setattr(os, "replace", lambda src, dst: (renamed.append(Path(src).name),
+                                                         replace(src, dst))[1])
+    write_atomic(tmp_path / "x.bin", b"whole")
+    assert (tmp_path / "x.bin").read_bytes() == b"whole"
+    assert len(renamed) == 1 and TEMPORARY_NAME.fullmatch(renamed[0])

@@ -20,7 +20,8 @@ import aperture_fab.io.files as files_module
 import aperture_fab.optimize.optimizer as optimize_module
 import aperture_fab.pipeline.design_job as pipeline_module
 from aperture_fab.config.config import Config, parse_toml, resolve
-from aperture_fab.io.files import load_targets, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import load_targets
 from aperture_fab.io.images import TargetWarning, encode_png, linear_to_srgb, resample
 from aperture_fab.optimize.optimizer import Interrupted
 from aperture_fab.pipeline.design_job import DesignResult, design, run_design

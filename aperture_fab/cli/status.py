@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import errno
-import re
 import signal
 from typing import Any
 
@@ -91,9 +90,6 @@ OS_ERROR_FIXES: dict[int, str] = {
 }
 
 
-#: The temporary name write_atomic gives a file while it writes it, and the file's own name.
-TEMP_NAME = re.compile(r"\.([^/\\]+)\.[0-9a-f]{12}\.tmp$")
-
 
 #: The package's import name: an ImportError inside it is a bug, not a missing package.
 PACKAGE_NAME = "aperture_fab"
@@ -146,11 +142,20 @@ def exit_code(err: BaseException) -> int:
     return EXIT_BAD_INPUT
 
 
+def _file_asked_for(path: str) -> str:
+    """`path`, or the file write_atomic was writing when `path` is its temporary file."""
+    from aperture_fab.io.atomic import TEMPORARY_NAME
+
+    folder, _, name = path.rpartition("/")
+    match = TEMPORARY_NAME.fullmatch(name)
+    return path if match is None else f"{folder}/{match['name']}" if folder else match["name"]
+
+
 def os_error_message(err: OSError, args: argparse.Namespace) -> str:
     """One line for a file the tool could not read or write: the file, why, and the fix."""
     out = getattr(args, "out", None)
-    # write_atomic writes .NAME.<12 hex>.tmp and renames it: name the file the user asked for.
-    what = (TEMP_NAME.sub(r"\1", str(err.filename)) if err.filename
+    # write_atomic writes a temporary file and renames it: name the file the user asked for.
+    what = (_file_asked_for(str(err.filename)) if err.filename
             else f"an output of --out {out}" if out is not None else "a file")
     why = err.strerror or str(err) or type(err).__name__
     fix = OS_ERROR_FIXES.get(err.errno or 0, "check the path and its permissions, then try again")

@@ -8,7 +8,6 @@ temporary name in its folder, flushed to disk, then renamed over the old one.
 from __future__ import annotations
 
 import os
-import secrets
 import stat
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -19,24 +18,7 @@ from aperture_fab.io.decode import decode_image
 from aperture_fab.io.formats import PART_SUFFIXES
 from aperture_fab.io.images import TargetOptions, fit_target
 
-__all__ = ["load_targets", "output_folder", "read_text", "write_atomic"]
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write via a temporary file in the same folder and rename: never a truncated file."""
-    payload = data.encode() if isinstance(data, str) else data
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    # os.open with 0o666 honours the umask, unlike mkstemp's private 0o600.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+__all__ = ["load_targets", "output_folder", "read_text"]
 
 
 #: How text files (configs, hole tables) are read: UTF-8, as TOML requires, with a byte-order

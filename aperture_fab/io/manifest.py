@@ -38,7 +38,7 @@ from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import pid_alive, remove_orphan_temporaries, write_atomic
 
 __all__ = [
     "MANIFEST_NAME",
@@ -75,23 +75,15 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True
-
-
 def _remove_orphans(folder: Path) -> None:
-    """Staging folders of runs that died (SIGKILL, power loss): their pid no longer runs."""
+    """Staging folders and temporary files (a checkpoint's, written straight into the folder)
+    of runs that died (SIGKILL, power loss): their pid no longer runs."""
     for path in folder.glob(f"{STAGING_PREFIX}*"):
         match = STAGING_PATTERN.fullmatch(path.name)
         if match and path.is_dir() and not path.is_symlink() \
-                and not _pid_alive(int(match.group(1))):
+                and not pid_alive(int(match.group(1))):
             shutil.rmtree(path, ignore_errors=True)
+    remove_orphan_temporaries(folder)
 
 
 @contextlib.contextmanager

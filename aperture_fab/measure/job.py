@@ -21,7 +21,8 @@ from aperture_fab.fabrication.coupon import Coupon, calibration_coupon, coupon_p
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.part import Part
 from aperture_fab.fabrication.process import MAX_OPTICAL_DENSITY
-from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import load_targets, output_folder
 from aperture_fab.io.formats import holes_csv
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import check_folder, publish, staging

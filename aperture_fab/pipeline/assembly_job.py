@@ -26,7 +26,7 @@ from aperture_fab.config.config import Config
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.coupon import calibration_coupon, coupon_part
 from aperture_fab.fabrication.part import Part
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 from aperture_fab.io.formats import holes_csv, stl_bytes, svg_text
 from aperture_fab.io.manifest import MANIFEST_NAME, publish, refuse_overwrite, staging
 from aperture_fab.optics.scene import Scene

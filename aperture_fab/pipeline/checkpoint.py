@@ -17,7 +17,7 @@ import torch
 from aperture_fab.config.config import Config
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.config.written import to_toml
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 
 __all__ = ["CHECKPOINT_NAME", "input_digests", "load_checkpoint", "resume_state",
            "save_checkpoint", "sha256"]

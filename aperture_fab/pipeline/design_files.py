@@ -17,7 +17,7 @@ import numpy as np
 from aperture_fab.config.stages import FabricationSettings, ValidationSettings
 from aperture_fab.config.written import to_dict, to_toml
 from aperture_fab.fabrication.part import Part
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain

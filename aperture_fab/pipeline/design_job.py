@@ -23,7 +23,8 @@ from aperture_fab.config.stages import FabricationSettings, ValidationSettings
 from aperture_fab.fabrication.part import Part, design_bounds, made_optics, make_part
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
-from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import load_targets, output_folder
 from aperture_fab.io.formats import FormatName
 from aperture_fab.io.images import TargetOptions, prepare_targets
 from aperture_fab.io.manifest import publish, remove_listed, staging

@@ -13,7 +13,8 @@ from aperture_fab.config.config import Config, parse_toml, resolve
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.part import Part, make_part
 from aperture_fab.fabrication.rules import check_plate
-from aperture_fab.io.files import output_folder, read_text, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import output_folder, read_text
 from aperture_fab.io.formats import (
     PART_FILE_SUFFIXES,
     PART_FORMATS,

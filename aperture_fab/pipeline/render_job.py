@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from aperture_fab.config.stages import MAX_COUNTS
-from aperture_fab.io.files import load_targets, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import load_targets
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import refuse_overwrite
 from aperture_fab.metrics import gain, psnr_db

@@ -24,7 +24,8 @@ from aperture_fab.config.config import Config
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.part import Part, made_optics, make_part
 from aperture_fab.fabrication.process import Process, UnmakeableError
-from aperture_fab.io.files import load_targets, output_folder, write_atomic
+from aperture_fab.io.atomic import write_atomic
+from aperture_fab.io.files import load_targets, output_folder
 from aperture_fab.io.formats import PART_FORMATS
 from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import publish, staging

@@ -300,7 +300,7 @@ front (highlighted). Click a point in the plot or an id in the table for its rep
 def write_results(out: Path, spec: SweepSpec, points: Sequence[Point],
                   records: Mapping[str, Mapping[str, Any]]) -> dict[str, Path]:
     """Write results.csv, results.parquet, pareto.csv and sweep.html; return their paths."""
-    from aperture_fab.io.files import write_atomic
+    from aperture_fab.io.atomic import write_atomic
 
     rows = table_rows(spec, points, records)
     columns = list(rows[0]) if rows else [*BASE_COLUMNS, *spec.swept_keys, *FIGURES,
@@ -343,7 +343,7 @@ class TableLog:
         self.last = self.clock()
 
     def start(self, points: Sequence[Point], records: Mapping[str, Mapping[str, Any]]) -> None:
-        from aperture_fab.io.files import write_atomic
+        from aperture_fab.io.atomic import write_atomic
 
         rows = table_rows(self.spec, [p for p in points if p.id in records], records)
         write_atomic(self.out / RESULTS_CSV, _csv(rows, self.columns))

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 from aperture_fab.sweep.preflight import Preflight, Resolver
 from aperture_fab.sweep.progress import Progress
 from aperture_fab.sweep.results import TableLog, write_results

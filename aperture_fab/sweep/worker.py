@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from aperture_fab.io.files import write_atomic
+from aperture_fab.io.atomic import write_atomic
 from aperture_fab.io.manifest import remove_listed
 from aperture_fab.sweep.results import figures_from_report
 from aperture_fab.sweep.spec import Point
