@@ -388,3 +388,8 @@ def test_a_dead_writers_temporary_file_is_removed_and_a_live_ones_kept(
     write_atomic(tmp_path / "x.bin", b"whole")
     assert (tmp_path / "x.bin").read_bytes() == b"whole"
     assert len(renamed) == 1 and TEMPORARY_NAME.fullmatch(renamed[0])
+    # A file written again (a checkpoint, a render) removes what a killed writer left of it.
+    stale = tmp_path / f".x.bin.{int(child.stdout)}-0123456789ab.tmp"
+    stale.write_bytes(b"partial")
+    write_atomic(tmp_path / "x.bin", b"again")
+    assert not stale.exists() and live.exists()

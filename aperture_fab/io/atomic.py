@@ -5,6 +5,7 @@ command line can name a file in its messages without loading the image stack."""
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import re
 import secrets
@@ -19,7 +20,8 @@ TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)-[0-9a-f]{12}\.tmp")
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write via a temporary file in the same folder and rename: never a truncated file."""
+    """Write via a temporary file in the same folder and rename: never a truncated file. Once
+    written, the temporaries of `path` that a killed writer left are removed."""
     payload = data.encode() if isinstance(data, str) else data
     tmp = path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
     try:  # the open too: an interrupt between it and the block would leave the file behind
@@ -34,6 +36,7 @@ def write_atomic(path: Path, data: bytes | str) -> None:
         with contextlib.suppress(OSError):  # the error that got here is the one to report
             tmp.unlink()
         raise
+    remove_orphan_temporaries(path.parent, path.name)
 
 
 def pid_alive(pid: int) -> bool:
@@ -47,10 +50,13 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def remove_orphan_temporaries(folder: Path) -> None:
-    """write_atomic's temporary files in `folder` whose writer no longer runs."""
-    for path in folder.glob(".*.tmp"):
+def remove_orphan_temporaries(folder: Path, name: str | None = None) -> None:
+    """write_atomic's temporary files in `folder` (of the file `name` alone, when given) whose
+    writer no longer runs; a live writer's are left alone."""
+    pattern = ".*.tmp" if name is None else f".{glob.escape(name)}.*.tmp"
+    for path in folder.glob(pattern):
         match = TEMPORARY_NAME.fullmatch(path.name)
-        if match and path.is_file() and not path.is_symlink() \
-                and not pid_alive(int(match["pid"])):
-            path.unlink(missing_ok=True)
+        if match and (name is None or match["name"] == name) and path.is_file() \
+                and not path.is_symlink() and not pid_alive(int(match["pid"])):
+            with contextlib.suppress(OSError):  # another run removed it first
+                path.unlink()
