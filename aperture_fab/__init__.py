@@ -4,7 +4,7 @@ One function per command, each returning what its command prints: `run_design` (
 folder with the part and its report), `validate`, `render`, `display`, `export`, `assembly`,
 `measure_plate` (`measure`: `aperture_fab.measure` is its package); `design` is the design job
 without files (targets and config in; the design, its part, the part's files as bytes and, with
-validation settings, its judged report out).
+validation settings, its judged `Report` out: `Verdict`s and report.json's content).
 
 The public names are loaded on first use (PEP 562): `import aperture_fab` stays cheap, so the
 command line can print its help, presets and processes without importing PyTorch, and
@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from aperture_fab.pipeline.render_job import run_display as display
     from aperture_fab.pipeline.render_job import run_render as render
     from aperture_fab.pipeline.validate_job import run_validate as validate
+    from aperture_fab.validation.report import Report, Verdict
 
 __all__ = [
     "Config",
@@ -34,7 +35,9 @@ __all__ = [
     "Display",
     "Eye",
     "Plate",
+    "Report",
     "Scene",
+    "Verdict",
     "assembly",
     "design",
     "display",
@@ -55,7 +58,9 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "Display": ("aperture_fab.optics.scene", "Display"),
     "Eye": ("aperture_fab.optics.scene", "Eye"),
     "Plate": ("aperture_fab.optics.scene", "Plate"),
+    "Report": ("aperture_fab.validation.report", "Report"),
     "Scene": ("aperture_fab.optics.scene", "Scene"),
+    "Verdict": ("aperture_fab.validation.report", "Verdict"),
     "assembly": ("aperture_fab.pipeline.assembly_job", "run_assembly"),
     "design": ("aperture_fab.pipeline", "design"),
     "display": ("aperture_fab.pipeline.render_job", "run_display"),

@@ -95,6 +95,9 @@ def test_lazy_public_names_resolve_to_their_definitions() -> None:
     assert (aperture_fab.Display, aperture_fab.Eye, aperture_fab.Plate, aperture_fab.Scene) == (
         scene.Display, scene.Eye, scene.Plate, scene.Scene)
     assert aperture_fab.targets is targets
+    from aperture_fab.validation import report
+
+    assert (aperture_fab.Report, aperture_fab.Verdict) == (report.Report, report.Verdict)
     assert set(aperture_fab.__all__) <= set(dir(aperture_fab))
     assert all(hasattr(aperture_fab, name) for name in aperture_fab.__all__)
     assert isinstance(aperture_fab.__version__, str)
