@@ -3,9 +3,8 @@
 The kernels (`aperture_fab.optics.kernels`) are compiled on first call, about 30 s per stack
 dtype on 2 cores, and cached on disk (Numba's cache: `__pycache__` beside the source, or the
 user's cache folder where that is read-only, or NUMBA_CACHE_DIR). `./dev setup` runs this once,
-so a fresh clone's first design starts optimizing at once:
-
-    python -m aperture_fab.optics.warm
+with the mesh re-trace's (`python -m aperture_fab.pipeline.warm`), so a fresh clone's first
+design starts optimizing at once:
 
 It renders a tiny plate forward and backward for each precision the optimizer offers, which
 compiles (or loads) exactly the signatures a design uses; on a machine with CUDA and Triton,
@@ -52,6 +51,3 @@ def warm_kernels(dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64
                 renderer.render(a, display).sum().backward()
     return time.perf_counter() - start
 
-
-if __name__ == "__main__":
-    print(f"aperture-fab: renderer kernels ready ({warm_kernels():.1f} s)")
