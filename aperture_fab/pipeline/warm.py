@@ -14,6 +14,7 @@ written part for each hole axis, which compiles (or loads) exactly the signature
 from __future__ import annotations
 
 import time
+
 import numpy as np
 
 from aperture_fab.optics.warm import warm_kernels
