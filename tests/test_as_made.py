@@ -18,6 +18,7 @@ from aperture_fab.optics.as_made import (
     draw_errors,
     drawn_fractions,
     made_views,
+    made_views_and_white,
     white_transmission,
 )
 from aperture_fab.optics.diffraction import (
@@ -213,3 +214,28 @@ def test_white_efficiency_of_a_thin_plate_is_its_open_area(renderer, diameter):
     states = nominal(renderer)
     assert float(white_transmission(renderer, a, states)[0]) == pytest.approx(
         fraction(diameter), rel=0.03)
+
+
+@pytest.mark.parametrize("with_errors", [False, True])
+def test_the_white_channel_is_the_made_copys_efficiency(renderer, display, with_errors):
+    """made_views_and_white renders the white display beside the content: the content views
+    are made_views' and the efficiency is white_transmission of the copy built by hand (its
+    drawn radii, a renderer moved by its offsets), diffraction and veil or not."""
+    rng = np.random.default_rng(3)
+    a = torch.as_tensor(rng.uniform(0.0, fraction(0.2), (31, 31)))
+    scene = renderer.scene
+    optics = MadeOptics(radius_sigma_mm=0.005, position_sigma_mm=0.01, solid_transmission=1e-3,
+                        diffraction=mixture_for(renderer, 0.02, 0.2))
+    draw = draw_errors((31, 31), optics, np.random.default_rng(4)) if with_errors else None
+    states = nominal(renderer)
+    stack = renderer.display_stack(display)
+    views, through, white = made_views_and_white(renderer, a, display, stack, states, optics,
+                                                 draw)
+    alone, alone_through = made_views(renderer, a, display, states, optics, draw, stack)
+    torch.testing.assert_close(views, alone)
+    torch.testing.assert_close(through, alone_through)
+    copy, moved = a, renderer
+    if draw is not None:
+        copy = drawn_fractions(a, draw.radius_mm, scene.plate.pitch_mm)
+        moved = Renderer(scene, dtype=torch.float64, hole_offset_mm=draw.offset_mm)
+    torch.testing.assert_close(white, white_transmission(moved, copy, states))

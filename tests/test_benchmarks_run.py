@@ -223,6 +223,9 @@ def test_bench_end_to_end_quick(tmp_path: Path) -> None:
     for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
         assert stage in stages and stages[stage] >= 0, stage
     assert figures["median_wall_s"] >= sum(stages.values())  # the stages run one after another
+    after = sum(v for k, v in stages.items() if k != "optimize_s")
+    assert figures["after_optimizer_s"] == pytest.approx(after)
+    assert 0 < figures["after_optimizer_share"] < 1
 
 
 @pytest.mark.slow

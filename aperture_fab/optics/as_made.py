@@ -28,7 +28,7 @@ from aperture_fab.optics.leakage import veil
 from aperture_fab.optics.model import Renderer
 
 __all__ = ["MadeOptics", "MadeDraw", "draw_errors", "drawn_fractions", "made_views",
-           "white_transmission"]
+           "made_views_and_white", "white_transmission"]
 
 
 @dataclass(frozen=True)
@@ -106,17 +106,46 @@ def made_views(renderer: Renderer, open_fraction: torch.Tensor, display: torch.T
     (rows, cols) as made, with one copy's errors `draw` (None: the nominal copy), for each eye
     state. Returns (views with the veil, views without it: the light through the holes).
     stack: the display's `renderer.display_stack`, when the caller has it already."""
-    pitch = renderer.scene.plate.pitch_mm
-    a = open_fraction
-    if draw is not None:
-        a = drawn_fractions(a, draw.radius_mm, pitch)
-        if draw.offset_mm is not None:
-            renderer = renderer.with_hole_offsets(draw.offset_mm)
     if stack is None:
         stack = renderer.display_stack(display)
-    views = renderer.render_states(a, stack, states)
+    views, a = _render_copy(renderer, open_fraction, stack, states, draw)
+    return _finish(views, a, display, optics, renderer.scene.plate.pitch_mm)
+
+
+def made_views_and_white(renderer: Renderer, open_fraction: torch.Tensor,
+                         display: torch.Tensor, stack: torch.Tensor, states: EyeStates,
+                         optics: MadeOptics, draw: MadeDraw | None = None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """As `made_views` (with the display's stack), plus the copy's light efficiency per eye
+    state (S,): its mean view of a uniform white display through the same holes, as
+    `white_transmission` gives the drawn plate's. The white display rides in the same render
+    as an extra channel: the render's cost is in the holes' geometry, not in its channels."""
+    channels = display.shape[0]
+    both = torch.cat([stack, renderer.white_stack().to(stack)], 1)
+    views, a = _render_copy(renderer, open_fraction, both, states, draw)
+    shown, through = _finish(views[:, :channels], a, display, optics,
+                             renderer.scene.plate.pitch_mm)
+    return shown, through, views[:, channels].mean((1, 2))
+
+
+def _render_copy(renderer: Renderer, open_fraction: torch.Tensor, stack: torch.Tensor,
+                 states: EyeStates, draw: MadeDraw | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The geometric views (S, C, ny, nx) of a display stack through one made copy, and the
+    copy's open fractions (its radius errors drawn)."""
+    a = open_fraction
+    if draw is not None:
+        a = drawn_fractions(a, draw.radius_mm, renderer.scene.plate.pitch_mm)
+        if draw.offset_mm is not None:
+            renderer = renderer.with_hole_offsets(draw.offset_mm)
+    return renderer.render_states(a, stack, states), a
+
+
+def _finish(views: torch.Tensor, a: torch.Tensor, display: torch.Tensor, optics: MadeOptics,
+            pitch_mm: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Geometric views through made holes `a` with their diffraction and the veil: (views
+    with the veil, views without it)."""
     if optics.diffraction is not None:
-        views = optics.diffraction.blur(views, a, pitch)
+        views = optics.diffraction.blur(views, a, pitch_mm)
     if optics.solid_transmission == 0:
         return views, views
     return views + veil(a, display.to(views), optics.solid_transmission), views

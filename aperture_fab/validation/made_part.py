@@ -36,7 +36,12 @@ from aperture_fab.fabrication.part import made_optics
 from aperture_fab.fabrication.process import Process
 from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
 from aperture_fab.metrics import gain_psnr_db
-from aperture_fab.optics.as_made import MadeOptics, draw_errors, made_views, white_transmission
+from aperture_fab.optics.as_made import (
+    MadeOptics,
+    draw_errors,
+    made_views,
+    made_views_and_white,
+)
 from aperture_fab.optics.baselines import PinholeArray, elemental_display
 from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
@@ -60,7 +65,8 @@ class MadeQuality:
     """A plate as made over made copies and eye states.
 
     psnr_db: (T, copies, S) float64, gain-corrected PSNR per target, made copy and eye state.
-    efficiency: the light efficiency for a white display (share of the open display's).
+    efficiency: the light efficiency for a white display (share of the open display's),
+        through the holes as made (the copies' mean; geometric: no veil).
     eye_level: the light at the eye: the mean view of the shown displays over targets, copies
         and eye states (veil included), as a share of the panel's full white.
     """
@@ -99,17 +105,23 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
              for _ in range(count)]
     psnr = np.zeros((len(targets), count, len(states)))
     level = np.zeros((len(targets), count))
+    white = np.zeros(count)
     with torch.no_grad():
         for t, display in enumerate(displays):
             shown = torch.as_tensor(display, dtype=dtype, device=device)
             stack = renderer.display_stack(shown) if stacks is None else stacks[t]
             for k, draw in enumerate(draws):
                 # The stack is the display's alone: every copy, moved holes or not, reads it.
-                views, _ = made_views(renderer, a, shown, states, optics, draw, stack)
+                # The first target's render carries the white display too (the efficiency).
+                if t == 0:
+                    views, _, light = made_views_and_white(renderer, a, shown, stack, states,
+                                                           optics, draw)
+                    white[k] = float(light.mean())
+                else:
+                    views, _ = made_views(renderer, a, shown, states, optics, draw, stack)
                 psnr[t, k] = gain_psnr_db(views.cpu().double().numpy()[None], targets[t : t + 1])[0]
                 level[t, k] = float(views.mean())
-    efficiency = float(white_transmission(renderer, a, states).mean())
-    return MadeQuality(psnr, efficiency, float(level.mean()))
+    return MadeQuality(psnr, float(white.mean()), float(level.mean()))
 
 
 @dataclass(frozen=True)
