@@ -4,7 +4,7 @@ The kernels (`aperture_fab.optics.kernels`) are compiled on first call, about 30
 dtype on 2 cores, and cached on disk (Numba's cache: `__pycache__` beside the source, or the
 user's cache folder where that is read-only, or NUMBA_CACHE_DIR). `./dev setup` runs this once,
 with the mesh re-trace's (`python -m aperture_fab.pipeline.warm`), so a fresh clone's first
-design starts optimizing at once:
+design starts optimizing at once.
 
 It renders a tiny plate forward and backward for each precision the optimizer offers, which
 compiles (or loads) exactly the signatures a design uses; on a machine with CUDA and Triton,
