@@ -330,3 +330,20 @@ def test_probe_cuda_graph_runs_and_leaves_the_walk_as_it_was(
     found = _load("probe_cuda_graph").main(["--iterations", "3"])
     assert _positive(found["eager_s"])
     assert fused_views._walk_plan is planned
+
+
+@pytest.mark.slow
+def test_bench_refit_quick(tmp_path: Path) -> None:
+    """The refit's figures per made copy, and the summary of those that lose, as printed."""
+    out = tmp_path / "refit.json"
+    result = _load("bench_refit").main(["--quick", "--json", str(out)])
+    assert json.loads(out.read_text()) == result
+    assert [row["seed"] for row in result["copies"]] == [11, 12]
+    losing = [row for row in result["copies"] if row["tolerance_loss_db"] > 0]
+    assert result["summary"]["losing"] == len(losing)
+    for row in losing:
+        assert row["refit_psnr_db"] >= row["made_psnr_db"]
+    if losing:
+        shares = [row["recovered_share"] for row in losing]
+        assert result["summary"]["lowest_share"] == min(shares)
+        assert result["summary"]["at_goal"] == sum(share >= 0.5 for share in shares)
