@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
-     [--copies 4] [--fit-iterations 40] [--quick] [--json PATH] [--plot DIR]
+     [--copies 4] [--fit-iterations 20] [--quick] [--json PATH] [--plot DIR]
 
 For each target: the design job's `design` (optimize, quantize, build) with the preset and its
 process, then everything judged the one way the report judges the made part
@@ -18,8 +18,8 @@ The regular family: every lattice step up to 3 mm x 6 made hole sizes, first wit
 images (fast, every array), then the rivals at the part's light at the eye (per pitch, the two
 smallest holes at least as bright; the --rivals best of them) again with their display
 fitted like the part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from
-the elemental images): `made_part_block`, as the report does it with fewer rivals and
-iterations. The margin is
+the elemental images; each rival judged after half and all of them, at its best:
+`RIVAL_FIT_SHARES`): `made_part_block`, as the report does it with fewer rivals. The margin is
 the part's p10 less the best rival's p10 at equal or more light at the eye.
 
 Also: the tolerance yield of the report (`validation.validate.tolerance_analysis`: process and
@@ -52,7 +52,7 @@ from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.validation.made_part import made_part_block
+from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")
@@ -142,7 +142,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--states", type=int, default=32)
     parser.add_argument("--front-states", type=int, default=FRONT_STATES)
     parser.add_argument("--copies", type=int, default=4)
-    parser.add_argument("--fit-iterations", type=int, default=40)
+    parser.add_argument("--fit-iterations", type=int, default=RIVAL_FIT_ITERATIONS)
     parser.add_argument("--tolerance-samples", type=int, default=TOLERANCE_SAMPLES,
                         help="draws of the tolerance yield (the report's 16 pin a yield loosely: "
                         "64 give a 90 %% interval of about +-6 points at 90 %%)")

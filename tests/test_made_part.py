@@ -23,6 +23,7 @@ from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.io.formats import holes_csv, read_holes_csv
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.as_made import MadeOptics
+from aperture_fab.optics.baselines import elemental_display
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.pipeline.design_job import design
@@ -127,6 +128,30 @@ def test_without_diffraction_the_smallest_hole_is_best(one_pitch):
     ratio = front.efficiency / (np.pi * front.diameter_mm**2 / 4)
     assert np.all((ratio > 0.85) & (ratio <= 1.0 + 1e-6))
     np.testing.assert_allclose(ratio, ratio[0], rtol=0.04)
+
+
+@pytest.mark.parametrize(("floor_share", "kept"), [(0.0, "dim"), (0.8, "noisy"), (2.0, "noisy")])
+def test_a_fitted_rival_keeps_its_best_content_that_is_bright_enough(one_pitch, floor_share,
+                                                                     kept):
+    """regular_front with several contents along a fit judges the array with the best p10
+    among those with at least the light asked for, else the brightest: the elemental images
+    at 0.4 of their level (as sharp: PSNR after gain ignores the level) against a noisier
+    content at full light."""
+    scene, _, targets, arrays, renderer = one_pitch
+    array, states = arrays[3], renderer.nominal_states()
+    elemental = np.stack([elemental_display(scene, array.array, torch.as_tensor(t)).numpy()
+                          for t in targets])
+    noise = np.random.default_rng(0).normal(0.0, 0.5, elemental.shape)
+    contents = {"noisy": np.clip(elemental + noise, 0.0, 1.0), "dim": 0.4 * elemental}
+    judged = {name: judge_made(renderer, targets, array.array.open_fraction, shown, MadeOptics(),
+                               states) for name, shown in contents.items()}
+    assert judged["dim"].percentile(10).mean() > judged["noisy"].percentile(10).mean() + 0.5
+    assert judged["dim"].eye_level < 0.5 * judged["noisy"].eye_level
+    level = floor_share * judged["noisy"].eye_level
+    front = regular_front(renderer, targets, [array], MadeOptics(), states,
+                          fit=lambda a, shown: list(contents.values()), eye_level=level)
+    np.testing.assert_allclose(front.p10[0], judged[kept].percentile(10))
+    assert front.eye_level[0] == pytest.approx(judged[kept].eye_level)
 
 
 def test_with_diffraction_the_best_hole_is_the_diffraction_limited_one(one_pitch):

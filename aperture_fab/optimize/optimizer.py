@@ -445,12 +445,15 @@ def fit_display(
     optics: MadeOptics | None = None,
     oversample: int = OPTIMIZER_OVERSAMPLE,
     progress: bool = False,
+    on_iteration: Callable[[int, torch.Tensor], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Re-fit the display content (T, C, H, W) to a fixed plate, e.g. the part as built, from
     `displays`; the plate is hardware, the display content software. Returns the displays and
     the loss history. Adam with the settings' learning rate and schedule, the same loss (with
     `optics`: the plate as made, one made copy drawn per iteration as in `optimize`), its
-    display stack sampled `oversample` times per pixel (the optimizer's, by default)."""
+    display stack sampled `oversample` times per pixel (the optimizer's, by default).
+    on_iteration(n, displays): told the content after each iteration n (1 to iterations; a
+    tensor the fit goes on changing: copy what you keep)."""
     device = resolve_device(settings.device)
     dtype = torch_dtype(settings.precision)
     renderer = Renderer(scene, device=device, dtype=dtype, oversample=oversample)
@@ -480,4 +483,6 @@ def fit_display(
             shown.clamp_(0, 1)
         _hold_eye_floor(shown, seen, settings.min_eye_level)
         history.append(value)
+        if on_iteration is not None:
+            on_iteration(iteration + 1, shown.detach())
     return shown.detach().cpu().double().numpy(), np.asarray(history)
