@@ -25,53 +25,27 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import png
 import torch
 
 from aperture_fab.cli import EXIT_OK
 from aperture_fab.cli import main as cli
-from aperture_fab.io.images import encode_png
 from aperture_fab.measure.job import read_design_part
 from aperture_fab.measure.simulate import ScanSettings, simulate_scan
-from aperture_fab.targets import asymmetric_marker
 
-#: The tests' tiny scene (tests/conftest.py TINY_TOML), optimized further.
-TINY_TOML = """\
-preset = "near-eye-nominal"
+# The tests' tiny design, made copies and scan writer (tests/conftest.py,
+# tests/test_measure_refit.py): the figures are the tests'.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from conftest import design_tiny
+from test_measure_judge import write_scan
+from test_measure_refit import COPY, GOAL_SHARE
 
-[display]
-width_mm = 4.0
-height_mm = 4.0
-pixels = [32, 32]
-
-[plate]
-cells = [16, 16]
-pitch_mm = 0.25
-
-[eye]
-view_pixels = [16, 16]
-
-[optimizer]
-device = "cpu"
-min_efficiency = 0.0
-"""
-MARKER_PX = 32
-#: The made copies (tests/test_measure_refit.py COPY).
-COPY = dict(dpi=4800, rotation_deg=7.0, radius_bias_mm=0.0, radius_sigma_mm=0.003,
-            position_sigma_mm=0.005, blocked=3)
-GOAL_SHARE = 0.5
 QUICK = {"copies": 2, "iterations": 20}
 
 
 def design(folder: Path, iterations: int, lr: float | None) -> None:
-    (folder / "tiny.toml").write_text(TINY_TOML)
-    (folder / "marker.png").write_bytes(encode_png(asymmetric_marker(MARKER_PX)))
     flags = ["--iterations", str(iterations), "--out", str(folder / "plate.stl"),
              "--no-validate", "--quiet"]
-    if lr is not None:
-        flags += ["--lr", str(lr)]
-    if cli(["design", str(folder / "marker.png"), "--config", str(folder / "tiny.toml"),
-            *flags]) != EXIT_OK:
+    if design_tiny(folder, *flags, *([] if lr is None else ["--lr", str(lr)])) != EXIT_OK:
         raise RuntimeError("the tiny design failed")
 
 
@@ -80,10 +54,7 @@ def refit_copy(designed: Path, seed: int) -> dict[str, Any]:
     part = read_design_part(designed)
     scan = simulate_scan(part.layout, ScanSettings(**COPY, seed=seed),  # type: ignore[arg-type]
                          part.corner_cut_mm)
-    path = designed / f"scan_{seed}.png"
-    with path.open("wb") as f:
-        png.Writer(scan.image.shape[1], scan.image.shape[0], greyscale=True,
-                   bitdepth=8 * scan.image.dtype.itemsize).write(f, scan.image)
+    path = write_scan(designed / f"scan_{seed}.png", scan)
     made = designed / f"made_{seed}"
     if cli(["measure", str(path), "--design", str(designed), "--out", str(made),
             "--quiet"]) != EXIT_OK:

@@ -347,3 +347,16 @@ def test_bench_refit_quick(tmp_path: Path) -> None:
         shares = [row["recovered_share"] for row in losing]
         assert result["summary"]["lowest_share"] == min(shares)
         assert result["summary"]["at_goal"] == sum(share >= 0.5 for share in shares)
+
+
+@pytest.mark.slow
+def test_bench_rival_fit_quick(tmp_path: Path) -> None:
+    """A rival's p10 and light at the eye per fit length, as printed: the elemental images and
+    a short fit."""
+    out = tmp_path / "rival.json"
+    rows = _load("bench_rival_fit").main(["--quick", "--json", str(out)])
+    assert json.loads(out.read_text()) == rows
+    assert [row["fit_iterations"] for row in rows] == [0, 2]
+    for row in rows:
+        assert _positive(row["p10_db"]) and _positive(row["eye_level"])
+        assert row["p50_db"] >= row["p10_db"]

@@ -111,6 +111,8 @@ EXAMPLES: dict[str, str] = {
     ".venv/bin/python benchmarks/bench_quality.py": "minutes; " + _BENCH_TESTS,
     ".venv/bin/python benchmarks/bench_end_to_end.py": "minutes; " + _BENCH_TESTS,
     ".venv/bin/python benchmarks/bench_light.py": "minutes; " + _BENCH_TESTS,
+    ".venv/bin/python benchmarks/bench_rival_fit.py":
+        "five display fits and judgements of a regular array, about two minutes; " + _BENCH_TESTS,
     ".venv/bin/python benchmarks/bench_refit.py":
         "20 made copies measured and re-fitted, about two minutes; " + _BENCH_TESTS,
     ".venv/bin/python benchmarks/bench_sweep.py":

@@ -284,7 +284,8 @@ RIVAL_FIT_ITERATIONS = 20
 #: Measured on the near-eye preset, photomask, 4 copies x 32 states, fits of 10 / 20 / 40 / 80
 #: iterations of a 1.75 mm, 0.234 mm array (1.5 mm on line-pairs): p10 natural 17.67 / 17.62 /
 #: 17.14 / 16.96 dB, digit-3 11.74 / 11.66 / 11.34 / 11.41, line-pairs 8.67 / 8.93 / 8.85 /
-#: 8.75 (elemental images: 16.27, 11.33, 7.61), the content darkening as the fit goes on.
+#: 8.75 (elemental images: 16.27, 11.33, 7.61); the content darkens as the fit goes on on the
+#: digit and the line pattern (the photo's brightens to 40 iterations, then darkens).
 RIVAL_FIT_SHARES = (0.5, 1.0)
 #: What the made-part model leaves out (docs/model.md).
 NEGLECTED = ("light scattered off hole walls and plate faces", "the veil's fall-off toward "
