@@ -6,10 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_model import make_scene
 
 from aperture_fab.metrics import gain_mse, gain_mse_states
 from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.kernels import open_index
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import combine_states
 
@@ -85,6 +88,24 @@ def test_a_render_without_hole_gradient_skips_closed_cells_exactly(case):
     # A closed cell's sqrt(eps) radius leaves a trace of about 1e-12 where it is walked.
     torch.testing.assert_close(skipped, walked.detach(), rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(skipped, reference, rtol=1e-9, atol=1e-10)
+
+
+@settings(max_examples=50, deadline=None)
+@given(rows=st.integers(1, 6), cols=st.integers(1, 9), share=st.floats(0, 1),
+       seed=st.integers(0, 2**16))
+def test_the_open_index_names_the_next_open_hole_of_each_row(rows, cols, share, seed):
+    """open_index(i, j) is the first column at or after j whose hole is open (radius above
+    `closed`), or cols: the kernels' walk visits exactly the open holes through it."""
+    rng = np.random.default_rng(seed)
+    closed = 1e-3
+    radius = np.where(rng.random(rows * cols) < share, rng.uniform(0.002, 0.1, rows * cols),
+                      rng.uniform(0, closed, rows * cols))
+    table = open_index(radius, (cols, rows), closed)
+    grid = radius.reshape(rows, cols)
+    want = [[next((k for k in range(j, cols) if grid[i, k] > closed), cols)
+             for j in range(cols)] for i in range(rows)]
+    assert table.dtype == np.int64 and table.shape == (rows, cols)
+    np.testing.assert_array_equal(table, want)
 
 
 def test_batched_states_equal_states_rendered_alone():

@@ -76,9 +76,11 @@ class KernelView(torch.autograd.Function):
         offsets, extra, box, shared, margin, closed = _walk_plan(
             renderer, radius, rows, ctx.needs_input_grad[0])
         channels_last = stack.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
-        args: tuple[Any, ...] = (radius.detach().double().numpy(), channels_last, vx, vy, rows,
+        radius_mm = radius.detach().double().numpy()
+        next_open = kernels.open_index(radius_mm, renderer.scene.plate.cells, closed)
+        args: tuple[Any, ...] = (radius_mm, channels_last, vx, vy, rows,
                                  renderer.kernel_geometry(), offsets, extra, box, shared, margin,
-                                 closed)
+                                 next_open)
         out = np.zeros((len(rows), stack.shape[1], len(vy), len(vx)))
         cast(Any, kernels.view_forward)(*args, out)  # numba dispatchers are untyped
         ctx.args, ctx.dtype = args, stack.dtype

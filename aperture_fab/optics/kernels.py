@@ -48,6 +48,7 @@ from aperture_fab.optics.kernel_pair import (
 __all__ = [
     "GEOMETRY_FIELDS",
     "STATE_FIELDS",
+    "open_index",
     "thread_count",
     "view_backward",
     "view_forward",
@@ -62,6 +63,18 @@ STATE_FIELDS = ("cx", "cy", "pupil_bottom", "top_scale", "window_scale", "level_
                 "keep")
 
 
+def open_index(radius: np.ndarray, cells: tuple[int, int], closed: float) -> np.ndarray:
+    """The kernels' table of open holes, (rows, cols) int64: entry (i, j) is the first column
+    j' >= j of row i whose hole radius (radius: (rows * cols,) mm, row-major) exceeds `closed`
+    (mm), or cols where none does. The walk steps from one open hole to the next through it,
+    so closed cells cost nothing (a regular array's plate is mostly closed)."""
+    cols, rows = cells
+    columns = np.broadcast_to(np.arange(cols, dtype=np.int64), (rows, cols))
+    marked = np.where(radius.reshape(rows, cols) > closed, columns, cols)
+    # The least open column at or after j: a running minimum from the row's end.
+    return np.ascontiguousarray(np.minimum.accumulate(marked[:, ::-1], axis=1)[:, ::-1])
+
+
 def thread_count() -> int:
     """Threads the parallel kernels use (NUMBA_NUM_THREADS, by default the CPU count)."""
     return int(get_num_threads())
@@ -72,7 +85,7 @@ _parallel = njit(cache=True, error_model="numpy", fastmath=FAST_MATH, parallel=T
 
 @_parallel
 def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, shared, margin,
-                 closed, out):
+                 next_open, out):
     """out[s, c, iy, ix]: the view of each eye state (see the module docstring).
 
     box: holes per axis that the union of the states' hole windows can span (the size of the
@@ -81,8 +94,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
     centre is its hole's axis point moved by t v / 2, so the holes whose lens lies wholly
     inside the pupil are a chord of each row, found without testing them. margin: the largest
     lens radius plus the largest hole displacement (mm), which that chord keeps clear of the
-    pupil's edge. closed: holes of this radius (mm) or less are skipped, as if there were none
-    (0: none skipped; a sparse plate's closed cells then cost a read each)."""
+    pupil's edge. next_open: `open_index`'s table; the walk visits only the holes it lists as
+    open, so a sparse plate's closed cells cost nothing."""
     channels = stack.shape[3]
     size = box * box
     for iy in prange(vy.shape[0]):
@@ -109,9 +122,11 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                 for i in range(r0, r1 + 1):
                     c0, c1 = pair_chord(geometry, ox, oy, outer, i)
                     ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
-                    for j in range(c0, c1 + 1):
-                        if radius[int(i * geometry[0] + j)] <= closed:
-                            continue
+                    j = c0 - 1
+                    while j < c1:  # the open holes of columns c0 to c1
+                        j = next_open[i, j + 1]
+                        if j > c1:
+                            break
                         n = (i - origin_r) * box + (j - origin_c)
                         if not (shared and seen[n]):
                             seen[n] = True
@@ -142,7 +157,7 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
 
 @_parallel
 def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, shared, margin,
-                  closed, grad_out, grad_radius, grad_stack, want_stack):
+                  next_open, grad_out, grad_radius, grad_stack, want_stack):
     """Gradients of sum(grad_out * view) (as `view_forward`) into per-block buffers:
     grad_radius (B, K) and, when want_stack, grad_stack (B, L, H, W, C). Block b handles a
     band of view rows, so no two threads write one buffer; the caller sums over B."""
@@ -177,9 +192,11 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                     for i in range(r0, r1 + 1):
                         c0, c1 = pair_chord(geometry, ox, oy, outer, i)
                         ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
-                        for j in range(c0, c1 + 1):
-                            if radius[int(i * geometry[0] + j)] <= closed:
-                                continue
+                        j = c0 - 1
+                        while j < c1:  # the open holes of columns c0 to c1
+                            j = next_open[i, j + 1]
+                            if j > c1:
+                                break
                             n = (i - origin_r) * box + (j - origin_c)
                             if not (shared and seen[n]):
                                 seen[n] = True
