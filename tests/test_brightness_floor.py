@@ -4,6 +4,8 @@ up to the floor, and gives up image quality for it; a floor no plate reaches is 
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from conftest import tiny_config
@@ -14,7 +16,11 @@ from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
-from aperture_fab.optimize.optimizer import EYE_FLOOR_HEADROOM
+from aperture_fab.optimize.optimizer import (
+    EYE_FLOOR_HEADROOM,
+    EYE_FLOOR_MEMORY,
+    _hold_eye_floor,
+)
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import digit
 
@@ -64,6 +70,28 @@ def test_the_floor_on_the_light_at_the_eye_holds_and_costs_quality() -> None:
     assert floor * (1 - FLOOR_SLACK) <= eye_level(floored, bright) \
         <= floor * (1 + EYE_FLOOR_HEADROOM + FLOOR_SLACK)
     assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
+
+
+@pytest.mark.parametrize(("level", "since", "scaled", "after"), [
+    (0.02, math.inf, False, math.inf),  # above and never below: the content's own light
+    (0.005, 3.0, False, 0.0),  # below: the penalty pushes
+    (0.02, 3.0, True, 4.0),  # above, just after a push: the overshoot is undone
+    (0.0102, 3.0, False, 4.0),  # within the headroom
+    (0.02, EYE_FLOOR_MEMORY, False, EYE_FLOOR_MEMORY + 1.0),  # the push has run out
+])
+def test_the_eye_floor_is_held_only_while_its_push_goes_on(level, since, scaled, after) -> None:
+    floor = 0.01
+    display = torch.full((3, 4, 4), 0.5, dtype=torch.float64)
+    count = _hold_eye_floor(display, {"eye_level": level}, floor, since)
+    assert count == after
+    want = 0.5 * floor * (1 + EYE_FLOOR_HEADROOM) / level if scaled else 0.5
+    torch.testing.assert_close(display, torch.full_like(display, want))
+
+
+def test_no_eye_floor_leaves_the_content_alone() -> None:
+    display = torch.full((3, 4, 4), 0.5, dtype=torch.float64)
+    assert _hold_eye_floor(display, {"eye_level": 0.3}, 0.0, math.inf) == math.inf
+    assert bool((display == 0.5).all())
 
 
 @pytest.mark.parametrize(("key", "light"), [("min_efficiency", "the open display's light"),

@@ -30,9 +30,10 @@ from aperture_fab.io.manifest import (
     publish,
     staging,
 )
-from aperture_fab.optimize.optimizer import MaskDesign, optimize
+from aperture_fab.optimize.optimizer import EYE_FLOOR_MEMORY, MaskDesign, optimize
 from aperture_fab.pipeline.checkpoint import (
     CHECKPOINT_NAME,
+    CHECKPOINT_VERSION,
     input_digests,
     resume_state,
     save_checkpoint,
@@ -67,7 +68,7 @@ def hostile_raw(marker: Path) -> bytes:
 def hostile_torch(marker: Path) -> bytes:
     """torch.save's zip format, the object inside a checkpoint-shaped dict."""
     buffer = io.BytesIO()
-    torch.save({"format": "aperture-fab checkpoint", "version": 2,
+    torch.save({"format": "aperture-fab checkpoint", "version": CHECKPOINT_VERSION,
                 "state": {"iteration": Hostile(marker)}, "inputs": {}}, buffer)
     return buffer.getvalue()
 
@@ -107,7 +108,7 @@ def test_a_checkpoint_of_the_old_format_is_refused(tmp_path: Path, marker_png: P
 
 def test_a_checkpoint_missing_state_is_refused_by_name(tmp_path: Path) -> None:
     buffer = io.BytesIO()
-    torch.save({"format": "aperture-fab checkpoint", "version": 2,
+    torch.save({"format": "aperture-fab checkpoint", "version": CHECKPOINT_VERSION,
                 "state": {"iteration": 3}, "inputs": {}}, buffer)
     (tmp_path / CHECKPOINT_NAME).write_bytes(buffer.getvalue())
     with pytest.raises(ValueError, match=r"lacks state\['history'\], .*Delete it"):
@@ -128,20 +129,24 @@ def optimize_marker(config: Config, **kwargs: Any) -> MaskDesign:
     return optimize(scene, targets, shown, config.optimizer, progress=False, **kwargs)
 
 
-@pytest.mark.parametrize("method", ["adam", "sgd"])
+@pytest.mark.parametrize(("method", "eye_floor"), [("adam", 0.0), ("sgd", 0.0), ("adam", 0.0003)])
 def test_a_checkpoint_file_resumes_to_the_same_result(tmp_path: Path, marker_png: Path,
                                                       make_config: MakeConfig,
-                                                      method: str) -> None:
+                                                      method: str, eye_floor: float) -> None:
     """Saved to checkpoint.pt and read back, a state resumes exactly as the state in memory:
-    the optimizer's moments, the history and the design kept before the snap (a tuple)."""
+    the optimizer's moments, the history, the design kept before the snap (a tuple) and, with
+    a floor on the light at the eye, the steps since the view was last below it."""
     config = make_config(**{"plate.thickness_mm": 0.3, "optimizer.iterations": 12,
                             "optimizer.checkpoint_every": 4, "optimizer.precision": "float64",
-                            "optimizer.quantize_share": 0.5, "optimizer.method": method})
+                            "optimizer.quantize_share": 0.5, "optimizer.method": method,
+                            "optimizer.min_eye_level": eye_floor})
     made = made_sizes(config.scene.plate, PROCESSES["resin"], config.scene.mid_plane_distance_mm)
     saved: list[dict[str, Any]] = []
     whole = optimize_marker(config, made=made, on_checkpoint=saved.append)
     state = saved[1]  # iteration 8: after the snap at 6, so it holds the continuous design
     assert state["iteration"] == 8 and isinstance(state["continuous"], tuple)
+    # with the floor, the view was below it at iteration 8: the hold's count must resume too
+    assert (state["since_below_floor"] <= EYE_FLOOR_MEMORY) == (eye_floor > 0)
     inputs = input_digests([marker_png], config, None)
     save_checkpoint(tmp_path, state, inputs)
     loaded = resume_state(tmp_path / CHECKPOINT_NAME, inputs, [marker_png])

@@ -56,7 +56,8 @@ class OptimizerSettings:
         panel's luminance times it is the luminance at the eye: 0.01 of a 500 cd/m2 panel is
         5 cd/m2, photopic). Unlike min_efficiency it counts the content, which a coded plate
         keeps dark; enforced by the same kind of penalty, and the content is scaled back down
-        to the floor when a step leaves it higher (brighter costs contrast); 0 sets no floor.
+        to the floor when the penalty's push leaves it higher (brighter costs contrast; a
+        content above the floor on its own is left alone); 0 sets no floor.
     plateau_patience: stop when the loss has not improved by plateau_tolerance (relative) for
         this many iterations; 0 never stops early.
     plateau_tolerance: relative improvement that counts as progress.

@@ -121,7 +121,10 @@ def made_views_and_white(renderer: Renderer, open_fraction: torch.Tensor,
     `white_transmission` gives the drawn plate's. The white display rides in the same render
     as an extra channel: the render's cost is in the holes' geometry, not in its channels."""
     channels = display.shape[0]
-    both = torch.cat([stack, renderer.white_stack().to(stack)], 1)
+    # Joined along the channels in the stacks' channels-last layout, which the kernels read.
+    last = (0, 2, 3, 4, 1)
+    both = torch.cat([stack.permute(last), renderer.white_stack().to(stack).permute(last)],
+                     -1).permute(0, 4, 1, 2, 3)
     views, a = _render_copy(renderer, open_fraction, both, states, draw)
     shown, through = _finish(views[:, :channels], a, display, optics,
                              renderer.scene.plate.pitch_mm)

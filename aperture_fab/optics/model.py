@@ -403,9 +403,12 @@ class Renderer:
         rows, cols = slice(c, c + d.shape[-2]), slice(c, c + d.shape[-1])
         # One level at a time: the product spectrum of every level at once is as large as the
         # stack's inverse transforms, and the batched transform took twice as long (0.20 ->
-        # 0.10 s for a float64 near-eye stack at two samples per pixel).
-        return torch.stack([torch.fft.irfft2(spectrum * kernel[:, level], s=self._fft_shape)
-                            [:, rows, cols] for level in range(kernel.shape[1])], 1).unsqueeze(0)
+        # 0.10 s for a float64 near-eye stack at two samples per pixel). Stored channels last
+        # (torch.channels_last_3d), the layout the fused kernels read, so that a render does
+        # not copy the stack into it.
+        levels = torch.stack([torch.fft.irfft2(spectrum * kernel[:, level], s=self._fft_shape)
+                              [:, rows, cols] for level in range(kernel.shape[1])], 1)
+        return levels.unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)
 
     def white_stack(self) -> torch.Tensor:
         """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a

@@ -54,10 +54,17 @@ TRACKED_SOLVE_ITERATIONS = 2
 #: floor costs 0.01, more than a typical image loss (MSE 1e-3), so the floor holds to a few %.
 FLOOR_WEIGHT = 1.0
 #: Above the floor on the light at the eye by more than this share, the display content is
-#: scaled down to it after the step. The image loss is blind to the content's scale, so nothing
-#: else brings it down once the penalty's first steps have overshot (they left the view at twice
-#: a floor of 1 % on natural, its content clipped at 1), and a dimmer content has more headroom.
+#: scaled down to it after the step, while the floor's penalty is still pushing (below). The
+#: image loss is blind to the content's scale, so nothing else brings it down once the
+#: penalty's steps have overshot (they left the view at twice a floor of 1 % on natural, its
+#: content clipped at 1), and a dimmer content has more headroom.
 EYE_FLOOR_HEADROOM = 0.05
+#: Steps after the light at the eye was last below its floor during which the penalty's push
+#: goes on: Adam's momentum (beta1 = 0.9) remembers about 10 steps. Past them, content whose
+#: own light is above the floor is left alone: a cap there made the line pattern's part darker
+#: than without the floor (0.47 to 0.26 % at the eye) and its margin over the regular arrays at
+#: that light 1.2 dB smaller (benchmarks/bench_made_part.py, 2026-11-29).
+EYE_FLOOR_MEMORY = 10
 
 
 @dataclass(frozen=True)
@@ -199,13 +206,20 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     return loss
 
 
-def _hold_eye_floor(display: torch.Tensor, seen: dict[str, float], floor: float) -> None:
+def _hold_eye_floor(display: torch.Tensor, seen: dict[str, float], floor: float,
+                    since_below: float) -> float:
     """Scale the display content (in place) down to EYE_FLOOR_HEADROOM above the floor on the
-    light at the eye when the last loss saw it higher (the view is linear in the content)."""
+    light at the eye when the last loss saw it higher within EYE_FLOOR_MEMORY steps of its last
+    being below the floor (the view is linear in the content). since_below: steps since then
+    before this one (math.inf: never); returns the count after it."""
+    if floor <= 0:
+        return since_below
     level, top = seen.get("eye_level", 0.0), floor * (1 + EYE_FLOOR_HEADROOM)
-    if floor > 0 and level > top:
+    since_below = 0.0 if level < floor else since_below + 1.0
+    if level > top and since_below <= EYE_FLOOR_MEMORY:
         with torch.no_grad():
             display.mul_(top / level)
+    return since_below
 
 
 def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
@@ -359,6 +373,7 @@ def optimize(
             "optimizer": copy.deepcopy(opt.state_dict()),
             "snap_from": state["snap_from"],
             "continuous": state["continuous"],
+            "since_below_floor": state["since_below_floor"],
         }
 
     stopped = "completed"
@@ -390,7 +405,8 @@ def optimize(
             if display_param is not None:
                 with torch.no_grad():
                     display_param.clamp_(0, 1)
-                _hold_eye_floor(display_param, seen, settings.min_eye_level)
+                state["since_below_floor"] = _hold_eye_floor(
+                    display_param, seen, settings.min_eye_level, state["since_below_floor"])
             state["history"].append(value)
             if value < state["best"] * (1 - settings.plateau_tolerance):
                 state["best"], state["best_iteration"] = value, iteration
@@ -463,6 +479,7 @@ def fit_display(
     opt = torch.optim.Adam([shown], lr=settings.learning_rate)
     schedule = replace(settings, iterations=iterations)
     seen: dict[str, float] = {}
+    since_below = math.inf
     history = []
     for iteration in tqdm(range(iterations), desc="fit display", disable=not progress,
                           leave=False):
@@ -481,7 +498,7 @@ def fit_display(
         opt.step()
         with torch.no_grad():
             shown.clamp_(0, 1)
-        _hold_eye_floor(shown, seen, settings.min_eye_level)
+        since_below = _hold_eye_floor(shown, seen, settings.min_eye_level, since_below)
         history.append(value)
         if on_iteration is not None:
             on_iteration(iteration + 1, shown.detach())

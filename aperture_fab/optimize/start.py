@@ -61,6 +61,8 @@ def initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Te
         # design just before it.
         "snap_from": settings.iterations - round(settings.quantize_share * settings.iterations),
         "continuous": None,
+        # Steps since the light at the eye was last below optimizer.min_eye_level (inf: never).
+        "since_below_floor": math.inf,
     }
     return state
 

@@ -32,7 +32,7 @@ CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = "aperture-fab checkpoint"
 
 
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
 
 
 CHECKPOINT_SCALARS = (str, bool, int, float)
@@ -43,6 +43,7 @@ CHECKPOINT_STATE: dict[str, type | tuple[type, ...]] = {
     "iteration": int, "history": list, "best": float, "best_iteration": int,
     "mask_logits": torch.Tensor, "display": (torch.Tensor, type(None)),
     "optimizer": (dict, type(None)), "snap_from": int, "continuous": (tuple, type(None)),
+    "since_below_floor": float,
 }
 
 
