@@ -403,7 +403,7 @@ def test_near_eye_designs_for_a_moving_eye() -> None:
     assert (eye.eyebox_mm, eye.eyebox_shape, eye.pupil_range_mm, eye.pupil_mm,
             eye.focus_range_diopters, eye.gaze_deg, eye.rotation_mm) == (
         (4.0, 4.0), "ellipse", (3.0, 6.0), 4.0, None, 0.0, 11.0)
-    assert (opt.eye_states, opt.tail_share, opt.tracking) == (8, 1.0, "untracked")
+    assert (opt.eye_states, opt.tail_share, opt.tracking) == (8, 0.5, "untracked")
 
 
 @pytest.mark.parametrize("name", ["near-eye-nominal", "seed"])

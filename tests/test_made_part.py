@@ -225,6 +225,17 @@ def test_mean_mse_psnr_is_the_psnr_of_the_mean_error(psnr: list[float]) -> None:
     assert float(flat.mean_mse_psnr()[0]) == pytest.approx(values[0], abs=1e-9)
 
 
+@pytest.mark.parametrize("share", [0.25, 0.5, 1.0])
+def test_tail_mse_psnr_is_the_psnr_of_the_worst_states_mean_error(share: float) -> None:
+    """With a tail share (the optimizer's loss over the worst states), the figure is the PSNR
+    of the mean squared error of the worst share of copies x states, pooled."""
+    values = np.array([[[30.0, 12.0, 18.0, 24.0], [15.0, 27.0, 21.0, 33.0]]])
+    worst = np.sort(values.ravel())[: round(share * values.size)]
+    expected = -10 * math.log10(np.mean(10 ** (-worst / 10)))
+    quality = MadeQuality(values, 0.01, 0.003)
+    assert float(quality.mean_mse_psnr(share)[0]) == pytest.approx(expected, abs=1e-9)
+
+
 # -- the verdict --------------------------------------------------------------------------------
 
 def block(margin: float | None) -> dict:

@@ -18,7 +18,7 @@ Why the "near-eye" numbers (the default):
   (docs/processes.md, "The default process"); chief-ray holes are kept for thicker plates;
 - pupil 4 mm: an indoor pupil; eye relief 10 mm: close, like glasses on the nose;
 - the eye moves (docs/design.md section 3): the design is optimized over a distribution of eye
-  states, 16 fresh ones each iteration, for one display content (untracked): the pupil centre
+  states, 8 fresh ones each iteration, for one display content (untracked): the pupil centre
   uniform over a 4 mm ellipse (a device on a head sits a little differently each time it is
   put on and slips while worn: a few mm, docs/design.md section 3), pupils 3 to 6 mm (indoor
   light levels; 4 mm nominal), focus at infinity (relaxed: the plate's depth of field makes
@@ -33,13 +33,17 @@ Why the "near-eye" numbers (the default):
   display's edge over the outer 5 deg, which no plate or display content can fix): about
   0.34 deg per view pixel, finer than the geometric blur of a hole (about 2r / h ~ 0.6 deg), so
   the model resolves it;
-- Adam at 0.05 from a regular pinhole array (the cells between its holes open at a small
+- Adam at 0.1 from a regular pinhole array (the cells between its holes open at a small
   hole), 150 iterations that all see the part as made (quantize_share 1: holes the process
   makes, a made copy's errors, diffraction and the material's veil; docs/model.md), with a
   light floor of 2 % (min_efficiency), stopping after 60 iterations without progress; 8 eye
   states per iteration: the photomask plate is dense (thousands of holes), which doubles the
   renderer's cost per state, and 8 states reach about what 16 do as made on natural (20.3 dB
-  p10 at 2.4 % light against 20.7 at 2.2 %, both judged as made over 4 copies x 32 states).
+  p10 at 2.4 % light against 20.7 at 2.2 %, both judged as made over 4 copies x 32 states);
+  the loss is the mean over the worst half of each iteration's states (tail_share 0.5), which
+  the report's p10 rewards: against the plain mean, +0.5 to +1.7 dB over the best regular
+  array at the part's light on the digit, the letter and the line pattern, the same on the
+  photo (README).
 
 The "near-eye-nominal" preset is near-eye judged and optimized at its one nominal eye state
 (the behaviour before eye distributions): the baseline that
@@ -140,7 +144,9 @@ PRESETS: dict[str, dict[str, Any]] = {
             "checkpoint_every": 50,
             "quantize_share": 1.0,
             "eye_states": 8,
-            "tail_share": 1.0,
+            # The worst half of the states: +0.5 to +1.7 dB over the best regular array at
+            # the part's light on three of the four targets, the same on the photo (README)
+            "tail_share": 0.5,
             "tracking": "untracked",
         },
         "process": {"name": DEFAULT_PROCESS},

@@ -46,7 +46,7 @@ from aperture_fab.optics.baselines import PinholeArray, elemental_display
 from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm
-from aperture_fab.optimize.optimizer import fit_display
+from aperture_fab.optimize.optimizer import combine_states, fit_display
 
 __all__ = ["MadeQuality", "RegularArray", "RegularFront", "judge_made", "regular_arrays",
            "regular_front", "rivals_at", "made_part_block",
@@ -80,11 +80,14 @@ class MadeQuality:
         flat = self.psnr_db.reshape(self.psnr_db.shape[0], -1)
         return np.percentile(flat, q, axis=1, method="hazen")
 
-    def mean_mse_psnr(self) -> np.ndarray:
-        """(T,) the PSNR of the mean squared error over copies and states: the figure the
-        optimizer's expected loss gives (`optimizer.psnr` of its loss), to compare the two."""
-        flat = self.psnr_db.reshape(self.psnr_db.shape[0], -1)
-        return -10 * np.log10(np.mean(10 ** (-flat / 10), axis=1))
+    def mean_mse_psnr(self, tail_share: float = 1.0) -> np.ndarray:
+        """(T,) the PSNR of the mean squared error over copies and states, or over the worst
+        tail_share of them (`combine_states`): the figure the optimizer's loss with that
+        `tail_share` gives (`optimizer.psnr` of its loss), to compare the two."""
+        flat = torch.as_tensor(10 ** (-self.psnr_db.reshape(self.psnr_db.shape[0], -1) / 10))
+        weights = torch.full((flat.shape[1],), 1.0 / flat.shape[1], dtype=flat.dtype)
+        mse = [float(combine_states(row, weights, tail_share)) for row in flat]
+        return -10 * np.log10(np.array(mse))
 
 
 def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
@@ -339,7 +342,8 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
         "copies": int(part.psnr_db.shape[1]), "states": len(evaluation),
         "neglected": list(NEGLECTED),
         "part": {"efficiency": part.efficiency, "eye_level": part.eye_level, **percentiles,
-                 "mean_mse_psnr_db": part.mean_mse_psnr().tolist()},
+                 "mean_mse_psnr_db": part.mean_mse_psnr().tolist(),
+                 "loss_psnr_db": part.mean_mse_psnr(settings.tail_share).tolist()},
         "regular": {"family": family.as_dict(), "fitted": fitted.as_dict(), "best": None},
         "margin_db": None,
     }

@@ -22,8 +22,9 @@ by `report_json`):
                     array at least as bright at the eye: {"copies", "states", "neglected", "part":
                     {"efficiency" (white display), "eye_level" (the light at the eye with the
                     shown content, a share of the panel's white), "p10_db", "p50_db", "p90_db",
-                    "mean_mse_psnr_db" (per target; the last: the PSNR of the mean squared
-                    error, the optimizer's figure)}, "regular": {"family", "fitted": per array
+                    "mean_mse_psnr_db" (per target: the PSNR of the mean squared error),
+                    "loss_psnr_db" (the same over the worst optimizer.tail_share of copies x
+                    states: the optimizer's figure)}, "regular": {"family", "fitted": per array
                     lists, "best": {"pitch_mm", "diameter_mm", "efficiency", "eye_level",
                     "p10_db", ...} or null}, "margin_db": per target or null}
                     (aperture_fab.validation.made_part.made_part_block), or null
