@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from test_model import make_scene
 
 from aperture_fab.metrics import gain_mse, gain_mse_states
+from aperture_fab.optics import kernels
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.kernels import open_index
 from aperture_fab.optics.model import Renderer
@@ -66,6 +67,40 @@ def test_kernels_match_the_torch_path(case, batch_name, displaced):
     for g, w in zip(got, want, strict=True):
         # atol: the torch path pads with closed cells of radius 1e-6 (area ~3e-12).
         torch.testing.assert_close(g, w, rtol=1e-7, atol=1e-9 * float(w.abs().max()))
+
+
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+@pytest.mark.parametrize("dead", [(0,), (1,), (0, 1)])
+def test_states_without_gradient_are_left_out_of_the_backward(batch_name, dead, monkeypatch):
+    """States whose views get no gradient (a tail loss's best ones) add nothing: the backward
+    walks only the others, and its gradients are those of the batch without them (none left:
+    zero, and no walk)."""
+    walked: list[int] = []
+    backward = kernels.view_backward
+
+    def counting(*args):
+        walked.append(len(args[4]))
+        return backward(*args)
+
+    monkeypatch.setattr(kernels, "view_backward", counting)
+    rng = np.random.default_rng(6)
+    renderer = Renderer(make_scene(thickness=0.2), dtype=torch.float64, backend="kernel")
+    batch = states(*BATCHES[batch_name])
+    a = rng.uniform(0, 0.6, (12, 12))
+    display = rng.random((3, 60, 60))
+    weight = rng.random((len(batch), 3, 32, 32))
+    weight[list(dead)] = 0.0
+    live = [s for s in range(len(batch)) if s not in dead]
+    _, grad_a, grad_display = views_and_grads(renderer, a, display, batch, weight)
+    assert walked == ([len(live)] if live else [])
+    if not live:
+        assert not grad_a.any() and not grad_display.any()
+        return
+    _, want_a, want_display = views_and_grads(renderer, a, display, batch.subset(live),
+                                              weight[live])
+    assert want_a.abs().max() > 0
+    torch.testing.assert_close(grad_a, want_a, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(grad_display, want_display, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("case", ["thin straight", "thick straight, finite focus"])

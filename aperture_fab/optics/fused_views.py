@@ -96,8 +96,16 @@ class KernelView(torch.autograd.Function):
         grad_radius = np.zeros((blocks, len(radius)))
         grad_stack = np.zeros((blocks, *channels_last.shape) if want_stack else (1, 1, 1, 1, 1),
                               dtype=channels_last.dtype)
-        grad = np.ascontiguousarray(grad_view.detach().double().numpy())
-        cast(Any, kernels.view_backward)(*ctx.args, grad, grad_radius, grad_stack, want_stack)
+        grad = grad_view.detach().double().numpy()
+        # States the loss does not reach (a tail loss's best ones) add nothing: the backward
+        # walks the others only (a pair costs the same for one state as for all, so fewer
+        # states save the pairs only they reach: 37 % of the backward at 4 of 8 states).
+        live = np.flatnonzero(grad.reshape(len(grad), -1).any(axis=1))
+        if len(live):
+            rows = np.ascontiguousarray(ctx.args[4][live])
+            cast(Any, kernels.view_backward)(*ctx.args[:4], rows, *ctx.args[5:],
+                                             np.ascontiguousarray(grad[live]), grad_radius,
+                                             grad_stack, want_stack)
         out_radius = torch.from_numpy(grad_radius.sum(0)).to(ctx.dtype)
         out_stack = None
         if want_stack:
