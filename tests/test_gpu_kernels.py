@@ -50,9 +50,9 @@ DISPLAY_OPTICS = {"cover_glass_mm": 0.5, "emission": "cosine_power", "emission_e
 
 
 def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, sparse=False,
-            reference="kernel"):
+            reference="kernel", dead=()):
     """The triton backend against `reference` ("kernel": the CPU kernels; "torch": the pair
-    tables and grid_sample, on this test's device)."""
+    tables and grid_sample, on this test's device); the states `dead` get no gradient."""
     rng = np.random.default_rng(seed)
     rows, cols = scene.plate.cells[1], scene.plate.cells[0]
     a = rng.uniform(0, 0.6, (rows, cols))
@@ -62,6 +62,7 @@ def compare(scene, batch, offsets, dtype=torch.float64, rtol=1e-9, seed=3, spars
     display = rng.random((3, pixels[1], pixels[0]))
     view = scene.eye.view_pixels
     weight = rng.random((len(batch), 3, view[1], view[0]))
+    weight[list(dead)] = 0.0
     got = views_and_grads(Renderer(scene, device=DEVICE, dtype=dtype, backend="triton",
                                    hole_offset_mm=offsets), a.astype(np.float64),
                           display, batch, weight)
@@ -97,6 +98,14 @@ def test_gpu_kernels_with_display_optics_and_displaced_holes():
     scene = with_display(make_scene(**SMALL, thickness=0.3, axis="chief_ray"), **DISPLAY_OPTICS)
     offsets = np.random.default_rng(4).normal(0, 0.05, (8, 8, 2))
     compare(scene, states(*BATCHES["mixed focus"]), offsets)
+
+
+@pytest.mark.parametrize("dead", [(1,), (0, 1, 2)])
+def test_gpu_kernels_leave_states_without_gradient_out(dead):
+    """The backward walks only the states whose views get a gradient (a tail loss's best ones
+    get none), with the torch path's gradients (none left: zero)."""
+    compare(make_scene(**SMALL), states(*BATCHES["infinity"]), None, reference="torch",
+            dead=dead)
 
 
 def test_gpu_kernels_in_float32_on_a_sparse_plate():

@@ -4,6 +4,7 @@ state of a batch in one pass."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import TYPE_CHECKING, Any, cast
 
@@ -136,8 +137,13 @@ class TritonView(torch.autograd.Function):
     def backward(ctx, grad_view):
         from aperture_fab.optics import gpu_walk
 
-        grad_radius, grad_stack = gpu_walk.view_backward(
-            ctx.walk, grad_view.detach(), bool(ctx.needs_input_grad[1]))
+        grad = grad_view.detach()
+        live = np.flatnonzero(grad.flatten(1).any(dim=1).cpu().numpy())  # as KernelView's
+        walk = ctx.walk
+        if len(live) < len(walk.states):
+            walk = dataclasses.replace(walk, states=walk.states[live])
+            grad = grad[torch.as_tensor(live, device=grad.device)]
+        grad_radius, grad_stack = gpu_walk.view_backward(walk, grad, bool(ctx.needs_input_grad[1]))
         out_stack = None
         if grad_stack is not None:
             out_stack = grad_stack.permute(3, 0, 1, 2)[None].to(ctx.dtype).contiguous()

@@ -105,6 +105,8 @@ def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
     grad_radius = torch.zeros_like(walk.radius)
     grad_stack = torch.zeros(walk.stack.shape if want_stack else (1,), dtype=torch.float64,
                              device=walk.stack.device)
+    if not count:  # no state gets a gradient
+        return grad_radius, (grad_stack if want_stack else None)
     box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
                          union=walk.shared)
     backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
