@@ -245,7 +245,8 @@ def block(margin: float | None) -> dict:
     return {"copies": 4, "states": 32, "neglected": [],
             "part": {"efficiency": 0.025, "eye_level": 0.004, "p10_db": [20.0], "p50_db": [22.0],
                      "p90_db": [24.0]},
-            "regular": {"family": {}, "fitted": {}, "best": best},
+            "regular": {"family": {"pitch_mm": [0.25, 3.0], "diameter_mm": [0.025, 0.234]},
+                        "fitted": {}, "best": best},
             "margin_db": None if margin is None else [margin]}
 
 
@@ -255,3 +256,5 @@ def test_made_verdict_levels(margin, level):
     verdict = made_verdict(block(margin))
     assert verdict.level == level
     assert "20.0 dB at 2.5 % light (0.4 % of the panel's white at the eye" in verdict.text
+    if margin is not None:  # what the family searched, and that it leaves larger holes out
+        assert "among pitches to 3 mm and holes to 234 um" in verdict.text

@@ -51,6 +51,7 @@ from aperture_fab.validation.verdicts import (
     LEVEL_WORDS,
     FixPlan,
     describe_distribution,
+    family_reach,
     fix_plan,
 )
 
@@ -289,7 +290,8 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
     margin = block.get("margin_db")
     note = ("" if margin is None else
             "<p>Margin over it (at equal or more light at the eye): <b>"
-            f"{' / '.join(f'{m:+.1f}' for m in margin)} dB</b> (per target).</p>")
+            f"{' / '.join(f'{m:+.1f}' for m in margin)} dB</b> (per target), "
+            f"{e(family_reach(block))}.</p>")
     return figure_grid([
         f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "
         f"position errors drawn afresh for each) x {block['states']} eye states, with "

@@ -20,7 +20,7 @@ from aperture_fab.validation.variants import EYE_BASELINES
 
 __all__ = ["EYE_MARGIN_DB", "LEVEL_WORDS", "MADE_MARGIN_DB", "MADE_TOPIC", "NOT_JUDGED",
            "YIELD_PASS", "YIELD_WARN", "FixPlan", "describe_distribution", "eye_verdict",
-           "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix",
+           "family_reach", "fix_plan", "made_verdict", "tolerance_verdict", "tracked_fix",
            "verdicts", "yield_interval"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
@@ -238,6 +238,15 @@ def _made_fixes(report: Report | None) -> tuple[str, ...]:
     return tuple(fixes)
 
 
+def family_reach(block: Mapping[str, Any]) -> str:
+    """What the regular family searched, and what it leaves out: its holes fit the part's
+    cells, and larger holes at coarse pitches can do better (README, "The part as made")."""
+    family = block["regular"]["family"]
+    return (f"among pitches to {max(family['pitch_mm']):g} mm and holes to "
+            f"{1000 * max(family['diameter_mm']):.0f} um (those that fit the part's cells; "
+            "larger holes at coarse pitches are not searched and can do better)")
+
+
 def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verdict:
     """The part as made (process errors, diffraction, the material's veil) over made copies x
     eye states against the best regular array the process makes at least as bright at the eye.
@@ -256,8 +265,8 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
     margin = min(block["margin_db"])
     rival = (f"the best regular array at least as bright at the eye ({best['pitch_mm']:g} mm "
              f"pitch, {1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g}"
-             f" % light, {100 * best['eye_level']:.2g} % at the eye, display fitted) reaches "
-             f"{min(best['p10_db']):.1f} dB")
+             f" % light, {100 * best['eye_level']:.2g} % at the eye, display fitted) "
+             f"{family_reach(block)}, reaches {min(best['p10_db']):.1f} dB")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
                        f"{MADE_MARGIN_DB:g} dB better.")
