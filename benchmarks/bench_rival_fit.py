@@ -4,8 +4,9 @@
 Run: .venv/bin/python benchmarks/bench_rival_fit.py [--target natural] [--pitch-mm 1.75]
      [--fits 0 10 20 40 80] [--states 32] [--copies 4] [--quick] [--json PATH]
 
-The preset's scene and process; the regular array of that lattice pitch with the process's
-largest made hole (`regular_arrays`, the report's family); its display fitted from the
+The preset's scene and process; the regular array of that lattice pitch with the largest hole
+the process makes in a cell that large (`regular_arrays`, the report's family); its display
+fitted from the
 elemental images (`fit_display` on the as-made loss, as the report fits a rival) for each
 length in --fits (0: the elemental images), each a separate fit, then judged as the report
 judges the made part (`regular_front`: --copies made copies x --states eye states). A fit lowers
@@ -27,14 +28,11 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import resolve
-from aperture_fab.fabrication.part import made_optics
-from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.eyes import distribution_of
-from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.validation.made_part import regular_arrays, regular_front
+from aperture_fab.validation.regular import RegularArray, regular_arrays, regular_front
 
 QUICK = {"fits": [0, 2], "states": 4, "copies": 1}
 
@@ -61,15 +59,11 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     scene, settings, process = config.scene, config.optimizer, config.fabrication.process
     targets, _ = prepare_targets([EXAMPLES[args.target]()], scene.eye.view_pixels,
                                  scene.display.pixels, names=[args.target])
-    arrays = [r for r in regular_arrays(scene, made_sizes(scene.plate, process,
-                                                          scene.mid_plane_distance_mm))
-              if math.isclose(r.pitch_mm, args.pitch_mm)]
+    arrays = [r for r in regular_arrays(scene, process) if math.isclose(r.pitch_mm, args.pitch_mm)]
     if not arrays:
         raise SystemExit(f"--pitch-mm {args.pitch_mm}: the family has no such lattice pitch; "
                          "use a multiple of the plate's cell pitch up to 3 mm.")
     rival = max(arrays, key=lambda r: r.array.diameter_mm)
-    renderer = Renderer(scene, device="cpu", dtype=torch.float32)
-    optics = made_optics(scene, process)
     states = distribution_of(scene.eye).evaluation_states(args.states)
     print(f"{args.target}, {process.name}: the {rival.pitch_mm:g} mm array of "
           f"{rival.array.diameter_mm * 1000:.0f} um holes, {args.copies} made copies x "
@@ -77,10 +71,12 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
           "threads")
     rows = []
     for iterations in args.fits:
-        def fit(a: np.ndarray, shown: np.ndarray, n: int = iterations) -> list[np.ndarray]:
-            return [fit_display(scene, targets, a, shown, settings, n, optics=optics)[0]]
+        def fit(regular: RegularArray, shown: np.ndarray, n: int = iterations
+                ) -> list[np.ndarray]:
+            return [fit_display(regular.scene, targets, regular.array.open_fraction, shown,
+                                settings, n, optics=regular.optics)[0]]
 
-        front = regular_front(renderer, targets, [rival], optics, states, args.copies,
+        front = regular_front(targets, [rival], states, args.copies,
                               fit=fit if iterations > 0 else None)
         row = {"fit_iterations": iterations, "p10_db": float(front.p10[0].mean()),
                "p50_db": float(front.p50[0].mean()), "eye_level": float(front.eye_level[0])}

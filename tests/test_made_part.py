@@ -19,7 +19,6 @@ from aperture_fab.config.config import resolve
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.part import made_optics
 from aperture_fab.fabrication.process import resolve_process
-from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.io.formats import holes_csv, read_holes_csv
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.as_made import MadeOptics
@@ -28,10 +27,10 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES, digit
-from aperture_fab.validation.made_part import (
-    MadeQuality,
+from aperture_fab.validation.made_quality import MadeQuality, judge_made
+from aperture_fab.validation.regular import (
+    RegularArray,
     RegularFront,
-    judge_made,
     regular_arrays,
     regular_front,
     rivals_at,
@@ -100,34 +99,40 @@ def test_rivals_are_the_smallest_bright_holes_per_pitch(case):
 
 @pytest.fixture(scope="module")
 def one_pitch():  # type: ignore[no-untyped-def]
-    """Regular arrays of one 1 mm pitch and 8 made sizes (photomask: 25 to 234 um) on a thin
-    plate 10 mm over the display, a line-pair target, the nominal eye."""
+    """The regular arrays of one 1 mm pitch (photomask: 12 made sizes, 25 to 984 um) on a thin
+    plate 10 mm over the display, a line-pair target, the nominal eye; the scene is the
+    arrays' (a plate of 1 mm cells)."""
     config = resolve("near-eye-nominal", overrides={
         "plate.thickness_mm": 0.005, "eye.view_pixels": [96, 96], "display.pixels": [300, 300]})
     scene = config.scene
     process = resolve_process("photomask")
     targets, _ = prepare_targets([EXAMPLES["line-pairs"]()], scene.eye.view_pixels,
                                  scene.display.pixels)
-    arrays = [a for a in regular_arrays(scene, made_sizes(scene.plate, process,
-                                                          scene.mid_plane_distance_mm), count=8)
-              if math.isclose(a.pitch_mm, 1.0)]
-    renderer = Renderer(scene, dtype=torch.float64)
-    return scene, process, targets, arrays, renderer
+    arrays = [a for a in regular_arrays(scene, process) if math.isclose(a.pitch_mm, 1.0)]
+    renderer = Renderer(arrays[0].scene, dtype=torch.float64)
+    return arrays[0].scene, process, targets, arrays, renderer
+
+
+def made_by(arrays: list[RegularArray], optics: MadeOptics) -> list[RegularArray]:
+    """The arrays made with `optics`."""
+    return [dataclasses.replace(a, optics=optics) for a in arrays]
 
 
 def test_without_diffraction_the_smallest_hole_is_best(one_pitch):
     """Geometric optics: a smaller hole is a sharper pinhole, so sharpness falls with size and
     the best array at least as bright as e is the smallest hole that bright."""
     _, _, targets, arrays, renderer = one_pitch
-    front = regular_front(renderer, targets, arrays, MadeOptics(), renderer.nominal_states())
+    front = regular_front(targets, made_by(arrays, MadeOptics()), renderer.nominal_states(),
+                          dtype=torch.float64)
     assert np.all(np.diff(front.p10[:, 0]) < 0)
     for k, light in enumerate(front.eye_level):
         assert front.best_at(float(light)) == k
     # and the light of a thin regular array is about its open area, (pi d^2 / 4) / pitch^2,
     # less at the view's edge, where part of the pupil's footprint leaves the 20 mm plate
+    # (a little less so for holes near the cell's size: the outer ones reach further out)
     ratio = front.efficiency / (np.pi * front.diameter_mm**2 / 4)
     assert np.all((ratio > 0.85) & (ratio <= 1.0 + 1e-6))
-    np.testing.assert_allclose(ratio, ratio[0], rtol=0.04)
+    np.testing.assert_allclose(ratio, ratio[0], rtol=0.06)
 
 
 @pytest.mark.parametrize(("floor_share", "kept"), [(0.0, "dim"), (0.8, "noisy"), (2.0, "noisy")])
@@ -148,8 +153,9 @@ def test_a_fitted_rival_keeps_its_best_content_that_is_bright_enough(one_pitch, 
     assert judged["dim"].percentile(10).mean() > judged["noisy"].percentile(10).mean() + 0.5
     assert judged["dim"].eye_level < 0.5 * judged["noisy"].eye_level
     level = floor_share * judged["noisy"].eye_level
-    front = regular_front(renderer, targets, [array], MadeOptics(), states,
-                          fit=lambda a, shown: list(contents.values()), eye_level=level)
+    front = regular_front(targets, made_by([array], MadeOptics()), states,
+                          fit=lambda regular, shown: list(contents.values()), eye_level=level,
+                          dtype=torch.float64)
     np.testing.assert_allclose(front.p10[0], judged[kept].percentile(10))
     assert front.eye_level[0] == pytest.approx(judged[kept].eye_level)
 
@@ -158,7 +164,8 @@ def test_with_diffraction_the_best_hole_is_the_diffraction_limited_one(one_pitch
     scene, process, targets, arrays, renderer = one_pitch
     optics = dataclasses.replace(made_optics(scene, process), radius_sigma_mm=0.0,
                                  position_sigma_mm=0.0, solid_transmission=0.0)
-    front = regular_front(renderer, targets, arrays, optics, renderer.nominal_states())
+    front = regular_front(targets, made_by(arrays, optics), renderer.nominal_states(),
+                          dtype=torch.float64)
     best = front.best_at(0.0)
     assert best is not None and 0 < best < len(arrays) - 1  # inside the ladder
     optimum = math.sqrt(2.44 * GREEN_MM * scene.pinhole_height_mm)
@@ -256,5 +263,5 @@ def test_made_verdict_levels(margin, level):
     verdict = made_verdict(block(margin))
     assert verdict.level == level
     assert "20.0 dB at 2.5 % light (0.4 % of the panel's white at the eye" in verdict.text
-    if margin is not None:  # what the family searched, and that it leaves larger holes out
+    if margin is not None:  # what the family searched
         assert "among pitches to 3 mm and holes to 234 um" in verdict.text

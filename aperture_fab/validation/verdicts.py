@@ -239,12 +239,12 @@ def _made_fixes(report: Report | None) -> tuple[str, ...]:
 
 
 def family_reach(block: Mapping[str, Any]) -> str:
-    """What the regular family searched, and what it leaves out: its holes fit the part's
-    cells, and larger holes at coarse pitches can do better (README, "The part as made")."""
+    """What the regular family searched (`aperture_fab.validation.regular`): its pitches and
+    hole sizes, each pitch with every size the process makes in a cell that large."""
     family = block["regular"]["family"]
     return (f"among pitches to {max(family['pitch_mm']):g} mm and holes to "
-            f"{1000 * max(family['diameter_mm']):.0f} um (those that fit the part's cells; "
-            "larger holes at coarse pitches are not searched and can do better)")
+            f"{1000 * max(family['diameter_mm']):.0f} um (each pitch with the holes the process "
+            "makes in a cell that large)")
 
 
 def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verdict:

@@ -1,0 +1,241 @@
+"""The family of regular pinhole arrays a process makes, judged as made: the baseline a coded
+part must beat.
+
+An array of the family is a square lattice of equal holes over the part's outline: its own
+plate, whose cells are the lattice pitch (a multiple of the part's cell pitch up to
+`MAX_REGULAR_PITCH_MM`), each holding one hole of a made size that the process makes in a cell
+that large. Holes far larger than the part's cells are in the family: at a coarse pitch a
+large hole often gives a plain array the same sharpness at several times the light. The sizes
+per pitch are a geometric ladder of made diameters, `SIZE_RATIO` apart, from the process's
+smallest hole up to the largest that pitch holds (which is always in). Each array is judged
+with its own renderer and made optics (`aperture_fab.fabrication.part.made_optics` of its
+plate), the display showing its elemental images for the nominal eye
+(`aperture_fab.optics.baselines`) or, with a fit, the content the part's display fit gives it.
+
+Its front is, at each light level at the eye, the best 10th percentile of any array at least
+that bright; a design is compared with the front at its own light (`RegularFront.best_at`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from aperture_fab.fabrication.part import made_optics
+from aperture_fab.fabrication.process import Process
+from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
+from aperture_fab.optics.as_made import MadeOptics
+from aperture_fab.optics.baselines import PinholeArray, elemental_display
+from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.model import Renderer
+from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
+from aperture_fab.validation.made_quality import MadeQuality, judge_made
+
+__all__ = ["RegularArray", "RegularFront", "regular_arrays", "regular_front", "rivals_at",
+           "MAX_REGULAR_PITCH_MM", "SIZE_RATIO"]
+
+#: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
+MAX_REGULAR_PITCH_MM = 3.0
+#: Neighbouring hole diameters of the family's ladder: a sqrt(2) step halves the light between
+#: two sizes (the best array's p10 moves by well under 1 dB between neighbours, measured on
+#: the near-eye preset; README, "The part as made").
+SIZE_RATIO = math.sqrt(2.0)
+#: Relative slack when a diameter is compared with a lattice's largest.
+_SLACK = 1e-9
+
+
+@dataclass(frozen=True)
+class RegularArray:
+    """One regular array: one hole of the same made size in every cell of its own plate.
+
+    scene: the part's scene with the array's plate (the part's plate, its cells the lattice
+        pitch, as many as fit the part's outline).
+    optics: how the process makes that plate (`made_optics`: errors, veil, diffraction).
+    array: its holes; `array.open_fraction` is (rows, cols) of that plate, float64.
+    """
+
+    scene: Scene
+    optics: MadeOptics
+    array: PinholeArray
+
+    @property
+    def pitch_mm(self) -> float:
+        """The lattice pitch (the larger of the plate's two)."""
+        return max(self.scene.plate.pitch_mm)
+
+
+def lattice_scene(scene: Scene, step: int) -> Scene:
+    """The scene with a plate whose cells are `step` of the part's cells on a side, as many as
+    fit the part's outline (at least one)."""
+    plate = scene.plate
+    cells = (max(1, plate.cells[0] // step), max(1, plate.cells[1] // step))
+    pitch = (step * plate.pitch_mm[0], step * plate.pitch_mm[1])
+    return replace(scene, plate=replace(plate, cells=cells, pitch_mm=pitch))
+
+
+def _made_diameters(sizes: MadeSizes, pitch_mm: tuple[float, float]) -> np.ndarray:
+    """The made hole diameters (mm, increasing) a cell of pitch_mm holds."""
+    if sizes.levels is not None:
+        return 2 * hole_radius_mm(np.asarray(sizes.levels[1:]), pitch_mm)
+    return 2 * hole_radius_mm(np.array([sizes.lo, sizes.hi]), pitch_mm)
+
+
+def _ladder(made: np.ndarray, smallest_mm: float, discrete: bool) -> np.ndarray:
+    """The family's diameters at one lattice: the ladder smallest_mm x SIZE_RATIO^k below the
+    lattice's largest made diameter, and that largest; a process with discrete sizes takes
+    its nearest made size to each rung (in log)."""
+    top = float(made[-1])
+    rungs = smallest_mm * SIZE_RATIO ** np.arange(
+        math.floor(math.log(top / smallest_mm) / math.log(SIZE_RATIO) + _SLACK) + 1)
+    rungs = rungs[rungs < top * (1 - _SLACK)]
+    if discrete:
+        rungs = made[np.argmin(np.abs(np.log(made[None, :] / rungs[:, None])), axis=1)]
+    return np.unique(np.append(rungs, top))
+
+
+def regular_arrays(scene: Scene, process: Process,
+                   max_pitch_mm: float = MAX_REGULAR_PITCH_MM) -> list[RegularArray]:
+    """The regular family of `process` over the part's outline: every lattice step (in the
+    part's cells) up to max_pitch_mm, each with its ladder of made sizes (module docstring),
+    in order of pitch, then size. Raises UnmakeableError when the process cannot make the
+    part's plate."""
+    plate = scene.plate
+    eye_distance = scene.mid_plane_distance_mm
+    smallest = float(_made_diameters(made_sizes(plate, process, eye_distance), plate.pitch_mm)[0])
+    out = []
+    for step in range(1, max(1, math.floor(max_pitch_mm / max(plate.pitch_mm) + _SLACK)) + 1):
+        lattice = lattice_scene(scene, step)
+        pitch = lattice.plate.pitch_mm
+        sizes = made_sizes(lattice.plate, process, eye_distance)
+        optics = made_optics(lattice, process)
+        ncx, ncy = lattice.plate.cells
+        for diameter in _ladder(_made_diameters(sizes, pitch), smallest, sizes.levels is not None):
+            level = float(open_fraction_of(diameter / 2, pitch))
+            holes = PinholeArray(np.full((ncy, ncx), level), 1, (ncy // 2, ncx // 2),
+                                 float(diameter))
+            out.append(RegularArray(lattice, optics, holes))
+    return out
+
+
+@dataclass(frozen=True)
+class RegularFront:
+    """The regular family judged: per array (A) its pitch and diameter (mm), white efficiency,
+    light at the eye (`MadeQuality.eye_level`) and PSNR percentiles (p10, p50, p90 per target:
+    (A, T) each). "At least as bright" means at least as much light at the eye."""
+
+    pitch_mm: np.ndarray
+    diameter_mm: np.ndarray
+    efficiency: np.ndarray
+    eye_level: np.ndarray
+    p10: np.ndarray
+    p50: np.ndarray
+    p90: np.ndarray
+
+    def best_at(self, eye_level: float) -> int | None:
+        """Index of the array with the best p10 (mean over targets) among those with at least
+        `eye_level` light at the eye; None when none is that bright."""
+        bright = np.flatnonzero(self.eye_level >= eye_level * (1 - 1e-9))
+        if bright.size == 0:
+            return None
+        return int(bright[np.argmax(self.p10[bright].mean(1))])
+
+    def front(self) -> tuple[np.ndarray, np.ndarray]:
+        """The front as a staircase: lights at the eye (increasing) and the best p10 (mean
+        over targets) of the arrays at least that bright."""
+        level = np.sort(self.eye_level)
+        p10 = self.p10.mean(1)
+        return level, np.array([p10[self.eye_level >= v].max() for v in level])
+
+    def subset(self, index: Sequence[int]) -> RegularFront:
+        """The arrays at `index`."""
+        pick = np.asarray(index, dtype=np.int64)
+        return RegularFront(self.pitch_mm[pick], self.diameter_mm[pick], self.efficiency[pick],
+                            self.eye_level[pick], self.p10[pick], self.p50[pick],
+                            self.p90[pick])
+
+    def as_dict(self) -> dict[str, list[float]]:
+        """Plain lists for report.json: per array its pitch, diameter, efficiency, light at
+        the eye and p10 / p50 (mean over targets)."""
+        return {"pitch_mm": self.pitch_mm.tolist(), "diameter_mm": self.diameter_mm.tolist(),
+                "efficiency": self.efficiency.tolist(), "eye_level": self.eye_level.tolist(),
+                "p10_db": self.p10.mean(1).tolist(), "p50_db": self.p50.mean(1).tolist()}
+
+
+def rivals_at(front: RegularFront, eye_level: float, per_pitch: int = 2) -> list[int]:
+    """Indices of the arrays that can be the best regular array with at least `eye_level`
+    light at the eye: per lattice pitch, the `per_pitch` smallest holes that bright (a larger
+    hole at the same pitch is only blurrier), to judge again with the display fitted."""
+    out = []
+    for pitch in np.unique(front.pitch_mm):
+        bright = np.flatnonzero((front.pitch_mm == pitch)
+                                & (front.eye_level >= eye_level * (1 - 1e-9)))
+        out += [int(i) for i in bright[np.argsort(front.diameter_mm[bright])][:per_pitch]]
+    return sorted(out)
+
+
+def elemental(regular: RegularArray, targets: torch.Tensor) -> np.ndarray:
+    """The array's elemental images for the nominal eye, (T, C, H, W) float64."""
+    return np.stack([elemental_display(regular.scene, regular.array, t).cpu().double().numpy()
+                     for t in targets])
+
+
+def _rank(quality: MadeQuality, eye_level: float) -> tuple[bool, float]:
+    """How good a judged content is for a rival: first those with at least `eye_level` light
+    at the eye, by p10 (mean over targets); then the others, by their light."""
+    bright = quality.eye_level >= eye_level * (1 - 1e-9)
+    return bright, float(quality.percentile(10).mean()) if bright else quality.eye_level
+
+
+#: A display fit for a rival: fit(array, its elemental images (T, C, H, W)) gives contents
+#: along the fit, each (T, C, H, W).
+RivalFit = Callable[[RegularArray, np.ndarray], Sequence[np.ndarray]]
+
+
+def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: EyeStates,
+                  copies: int = 1, seed: int = 0, fit: RivalFit | None = None,
+                  progress: Callable[[int, int], None] | None = None, eye_level: float = 0.0,
+                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+                  ) -> RegularFront:
+    """Judge every regular array as made (`judge_made`, its own renderer and optics), its
+    display showing elemental images for the nominal eye, or with `fit`, the contents
+    fit(array, elemental displays) returns (the part's display fit, so that arrays and part
+    are judged alike; several: points along the fit), each array judged with the best of them:
+    the highest p10 (mean over targets) among those with at least `eye_level` light at the eye
+    (when none has, the brightest). progress(done, total) is told after each array."""
+    eff, level, p10, p50, p90 = [], [], [], [], []
+    # Renderer and elemental images depend on the lattice alone, not the hole size: the
+    # consecutive arrays of one lattice (regular_arrays' order) share them, and the stacks of
+    # their elemental images (a fitted display is each array's own).
+    last: tuple[Scene, Renderer, np.ndarray, list[torch.Tensor]] | None = None
+    for index, regular in enumerate(arrays):
+        if last is None or last[0] is not regular.scene:
+            renderer = Renderer(regular.scene, device=device, dtype=dtype)
+            target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+            displays = elemental(regular, target_t)
+            with torch.no_grad():
+                stacks = [renderer.display_stack(torch.as_tensor(d, dtype=dtype, device=device))
+                          for d in displays]
+            last = regular.scene, renderer, displays, stacks
+        _, renderer, displays, stacks = last
+        a = regular.array.open_fraction
+        if fit is not None:
+            quality = max((judge_made(renderer, targets, a, shown, regular.optics, states,
+                                      copies, seed) for shown in fit(regular, displays)),
+                          key=lambda q: _rank(q, eye_level))
+        else:
+            quality = judge_made(renderer, targets, a, displays, regular.optics, states, copies,
+                                 seed, stacks)
+        eff.append(quality.efficiency)
+        level.append(quality.eye_level)
+        p10.append(quality.percentile(10))
+        p50.append(quality.percentile(50))
+        p90.append(quality.percentile(90))
+        if progress is not None:
+            progress(index + 1, len(arrays))
+    return RegularFront(np.array([r.pitch_mm for r in arrays]),
+                        np.array([r.array.diameter_mm for r in arrays]), np.array(eff),
+                        np.array(level), np.array(p10), np.array(p50), np.array(p90))
