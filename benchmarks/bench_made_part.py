@@ -14,8 +14,10 @@ efficiency for a white display and as the light at the eye (the mean view of the
 a share of the panel's white; times the [photometry] panel's luminance, cd/m2 at the eye, which
 the goal wants photopic: at least 5 cd/m2).
 
-The regular family: every lattice step up to 3 mm x 6 made hole sizes, first with elemental
-images (fast, every array), then the rivals at the part's light at the eye (per pitch, the two
+The regular family (`aperture_fab.validation.regular`): every lattice pitch up to 3 mm (a
+multiple of the plate's cell pitch, each on its own plate of cells that large over the part's
+outline) with a sqrt(2) ladder of the hole sizes the process makes in such a cell, first with
+elemental images (fast, every array), then the rivals at the part's light at the eye (per pitch, the two
 smallest holes at least as bright; the --rivals best of them) again with their display
 fitted like the part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from
 the elemental images; each rival judged after half and all of them, at its best:

@@ -12,7 +12,7 @@ import pytest
 import torch
 from conftest import tiny_config
 
-from aperture_fab.fabrication.process import resolve_process
+from aperture_fab.fabrication.process import UnmakeableError, resolve_process
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.io.images import prepare_targets
 from aperture_fab.optics.eyes import distribution_of
@@ -20,7 +20,9 @@ from aperture_fab.optics.scene import hole_radius_mm
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.regular import (
     MAX_REGULAR_PITCH_MM,
+    PITCH_STEP_MM,
     SIZE_RATIO,
+    lattice_scene,
     regular_arrays,
     regular_front,
 )
@@ -48,12 +50,16 @@ def test_every_array_is_made_by_the_process_inside_the_parts_outline(name: str) 
     scene = tiny_config("near-eye", **MAKEABLE[name]).scene
     process = resolve_process(name)
     arrays = regular_arrays(scene, process)
-    part_pitch = max(scene.plate.pitch_mm)
     smallest = made_diameters(scene, process)[0]
     pitches = sorted({a.pitch_mm for a in arrays})
-    steps = [round(p / part_pitch) for p in pitches]
-    assert steps == list(range(1, len(steps) + 1))  # every multiple of the cell pitch ...
-    assert (len(steps) + 1) * part_pitch > MAX_REGULAR_PITCH_MM  # ... up to the coarsest
+    steps = [round(p / PITCH_STEP_MM) for p in pitches]
+    assert np.allclose(pitches, np.array(steps) * PITCH_STEP_MM)
+    # every multiple of the pitch step from the finest the process makes to the coarsest
+    assert steps == list(range(steps[0], steps[-1] + 1))
+    assert (steps[-1] + 1) * PITCH_STEP_MM > MAX_REGULAR_PITCH_MM
+    if steps[0] > 1:
+        with pytest.raises(UnmakeableError):
+            made_diameters(lattice_scene(scene, (steps[0] - 1) * PITCH_STEP_MM), process)
     for pitch in pitches:
         lattice = [a for a in arrays if a.pitch_mm == pitch]
         plate = lattice[0].scene.plate
@@ -72,6 +78,18 @@ def test_every_array_is_made_by_the_process_inside_the_parts_outline(name: str) 
             assert a.array.open_fraction.shape == (plate.cells[1], plate.cells[0])
             radius = hole_radius_mm(a.array.open_fraction, plate.pitch_mm)
             np.testing.assert_allclose(2 * radius, a.array.diameter_mm)
+
+
+def test_the_family_does_not_depend_on_the_parts_cells() -> None:
+    """Two parts of one outline on different cells meet the same regular arrays."""
+    process = resolve_process("photomask")
+    fine = regular_arrays(tiny_config("near-eye").scene, process)
+    coarse = regular_arrays(tiny_config("near-eye", **{"plate.pitch_mm": 0.5,
+                                                       "plate.cells": [8, 8]}).scene, process)
+    assert len(fine) == len(coarse)
+    for a, b in zip(fine, coarse, strict=True):
+        assert a.scene == b.scene and a.array.diameter_mm == b.array.diameter_mm
+        np.testing.assert_array_equal(a.array.open_fraction, b.array.open_fraction)
 
 
 def test_the_search_reaches_holes_larger_than_the_parts_cells() -> None:

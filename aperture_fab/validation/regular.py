@@ -1,16 +1,18 @@
-"""The family of regular pinhole arrays a process makes, judged as made: the baseline a coded
-part must beat.
+"""The family of regular pinhole arrays a process makes, judged as made: the baseline a coded part
+must beat.
 
 An array of the family is a square lattice of equal holes over the part's outline: its own
-plate, whose cells are the lattice pitch (a multiple of the part's cell pitch up to
-`MAX_REGULAR_PITCH_MM`), each holding one hole of a made size that the process makes in a cell
-that large. Holes far larger than the part's cells are in the family: at a coarse pitch a
-large hole often gives a plain array the same sharpness at several times the light. The sizes
-per pitch are a geometric ladder of made diameters, `SIZE_RATIO` apart, from the process's
-smallest hole up to the largest that pitch holds (which is always in). Each array is judged
-with its own renderer and made optics (`aperture_fab.fabrication.part.made_optics` of its
-plate), the display showing its elemental images for the nominal eye
-(`aperture_fab.optics.baselines`) or, with a fit, the content the part's display fit gives it.
+plate, whose cells are the lattice pitch (every multiple of `PITCH_STEP_MM` up to
+`MAX_REGULAR_PITCH_MM` at which the process makes a hole), each holding one hole of a size the
+process makes in a cell that large. The family depends on the process and the part's outline,
+not on the part's own cells, so designs on different cells meet the same baseline. Holes far
+larger than the part's cells are in the family: at a coarse pitch a large hole often gives a
+plain array the same sharpness at several times the light. The sizes per pitch are a geometric
+ladder of made diameters, `SIZE_RATIO` apart, from the process's smallest hole up to the largest
+that pitch holds (which is always in). Each array is judged with its own renderer and made
+optics (`aperture_fab.fabrication.part.made_optics` of its plate), the display showing its
+elemental images for the nominal eye (`aperture_fab.optics.baselines`) or, with a fit, the
+content the part's display fit gives it.
 
 Its front is, at each light level at the eye, the best 10th percentile of any array at least
 that bright; a design is compared with the front at its own light (`RegularFront.best_at`).
@@ -26,7 +28,7 @@ import numpy as np
 import torch
 
 from aperture_fab.fabrication.part import made_optics
-from aperture_fab.fabrication.process import Process
+from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
 from aperture_fab.optics.as_made import MadeOptics
 from aperture_fab.optics.baselines import PinholeArray, elemental_display
@@ -35,11 +37,13 @@ from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
 from aperture_fab.validation.made_quality import MadeQuality, judge_made
 
-__all__ = ["RegularArray", "RegularFront", "regular_arrays", "regular_front", "rivals_at",
-           "MAX_REGULAR_PITCH_MM", "SIZE_RATIO"]
+__all__ = ["RegularArray", "RegularFront", "lattice_scene", "regular_arrays", "regular_front",
+           "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
 
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
 MAX_REGULAR_PITCH_MM = 3.0
+#: The family's lattice pitches are the multiples of this (the default plate's cell pitch).
+PITCH_STEP_MM = 0.25
 #: Neighbouring hole diameters of the family's ladder: a sqrt(2) step halves the light between
 #: two sizes (the best array's p10 moves by well under 1 dB between neighbours, measured on
 #: the near-eye preset; README, "The part as made").
@@ -52,8 +56,7 @@ _SLACK = 1e-9
 class RegularArray:
     """One regular array: one hole of the same made size in every cell of its own plate.
 
-    scene: the part's scene with the array's plate (the part's plate, its cells the lattice
-        pitch, as many as fit the part's outline).
+    scene: the part's scene with the array's plate (`lattice_scene`).
     optics: how the process makes that plate (`made_optics`: errors, veil, diffraction).
     array: its holes; `array.open_fraction` is (rows, cols) of that plate, float64.
     """
@@ -68,13 +71,13 @@ class RegularArray:
         return max(self.scene.plate.pitch_mm)
 
 
-def lattice_scene(scene: Scene, step: int) -> Scene:
-    """The scene with a plate whose cells are `step` of the part's cells on a side, as many as
-    fit the part's outline (at least one)."""
+def lattice_scene(scene: Scene, pitch_mm: float) -> Scene:
+    """The scene with a plate of square pitch_mm cells, as many as fit the part's cell grid
+    (at least one), the rest of the plate kept."""
     plate = scene.plate
-    cells = (max(1, plate.cells[0] // step), max(1, plate.cells[1] // step))
-    pitch = (step * plate.pitch_mm[0], step * plate.pitch_mm[1])
-    return replace(scene, plate=replace(plate, cells=cells, pitch_mm=pitch))
+    width, height = (max(1, math.floor(size / pitch_mm + _SLACK)) for size in plate.size_mm)
+    cells = (width, height)
+    return replace(scene, plate=replace(plate, cells=cells, pitch_mm=(pitch_mm, pitch_mm)))
 
 
 def _made_diameters(sizes: MadeSizes, pitch_mm: tuple[float, float]) -> np.ndarray:
@@ -99,18 +102,28 @@ def _ladder(made: np.ndarray, smallest_mm: float, discrete: bool) -> np.ndarray:
 
 def regular_arrays(scene: Scene, process: Process,
                    max_pitch_mm: float = MAX_REGULAR_PITCH_MM) -> list[RegularArray]:
-    """The regular family of `process` over the part's outline: every lattice step (in the
-    part's cells) up to max_pitch_mm, each with its ladder of made sizes (module docstring),
-    in order of pitch, then size. Raises UnmakeableError when the process cannot make the
-    part's plate."""
-    plate = scene.plate
+    """The regular family of `process` over the part's outline: every multiple of
+    PITCH_STEP_MM up to max_pitch_mm at which the process makes a hole, each with its ladder
+    of made sizes (module docstring), in order of pitch, then size. Raises UnmakeableError
+    when the process makes none of them."""
     eye_distance = scene.mid_plane_distance_mm
-    smallest = float(_made_diameters(made_sizes(plate, process, eye_distance), plate.pitch_mm)[0])
+    lattices = []
+    for k in range(1, math.floor(max_pitch_mm / PITCH_STEP_MM + _SLACK) + 1):
+        lattice = lattice_scene(scene, k * PITCH_STEP_MM)
+        try:
+            lattices.append((lattice, made_sizes(lattice.plate, process, eye_distance)))
+        except UnmakeableError:  # too fine for the process: coarser lattices may do
+            continue
+    if not lattices:
+        raise UnmakeableError(
+            f"process {process.name!r} makes no regular array with a pitch up to "
+            f"{max_pitch_mm:g} mm on plate.thickness_mm = {scene.plate.thickness_mm:g}: its "
+            "holes and webs need a coarser pitch; choose another process.")
+    first, first_sizes = lattices[0]
+    smallest = float(_made_diameters(first_sizes, first.plate.pitch_mm)[0])
     out = []
-    for step in range(1, max(1, math.floor(max_pitch_mm / max(plate.pitch_mm) + _SLACK)) + 1):
-        lattice = lattice_scene(scene, step)
+    for lattice, sizes in lattices:
         pitch = lattice.plate.pitch_mm
-        sizes = made_sizes(lattice.plate, process, eye_distance)
         optics = made_optics(lattice, process)
         ncx, ncy = lattice.plate.cells
         for diameter in _ladder(_made_diameters(sizes, pitch), smallest, sizes.levels is not None):
