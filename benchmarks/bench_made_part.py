@@ -15,14 +15,14 @@ a share of the panel's white; times the [photometry] panel's luminance, cd/m2 at
 the goal wants photopic: at least 5 cd/m2).
 
 The regular family (`aperture_fab.validation.regular`): every lattice pitch up to 3 mm (a
-multiple of the plate's cell pitch, each on its own plate of cells that large over the part's
-outline) with a sqrt(2) ladder of the hole sizes the process makes in such a cell, first with
-elemental images (fast, every array), then the rivals at the part's light at the eye (per pitch, the two
-smallest holes at least as bright; the --rivals best of them) again with their display
-fitted like the part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from
-the elemental images; each rival judged after half and all of them, at its best:
-`RIVAL_FIT_SHARES`): `made_part_block`, as the report does it with fewer rivals. The margin is
-the part's p10 less the best rival's p10 at equal or more light at the eye.
+multiple of 0.25 mm, each on its own plate of cells that large over the part's outline) with a
+sqrt(2) ladder of the hole sizes the process makes in such a cell, first with elemental images
+(fast, every array), then the rivals at the part's light at the eye (per pitch, the two smallest
+holes at least as bright; the --rivals best of them) again with their display fitted like the
+part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from the elemental
+images; each rival judged after half and all of them, at its best: `RIVAL_FIT_SHARES`):
+`made_part_block`, as the report does it with fewer rivals. The margin is the part's p10 less
+the best rival's p10 at equal or more light at the eye.
 
 Also: the tolerance yield of the report (`validation.validate.tolerance_analysis`: process and
 assembly tolerances, each of --tolerance-samples draws (default 16, the report's) judged by its
