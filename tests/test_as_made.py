@@ -17,6 +17,7 @@ from aperture_fab.optics.as_made import (
     MadeOptics,
     draw_errors,
     drawn_fractions,
+    join_white,
     made_views,
     made_views_and_white,
     white_transmission,
@@ -229,7 +230,8 @@ def test_the_white_channel_is_the_made_copys_efficiency(renderer, display, with_
     draw = draw_errors((31, 31), optics, np.random.default_rng(4)) if with_errors else None
     states = nominal(renderer)
     stack = renderer.display_stack(display)
-    views, through, white = made_views_and_white(renderer, a, display, stack, states, optics,
+    views, through, white = made_views_and_white(renderer, a, display,
+                                                 join_white(renderer, stack), states, optics,
                                                  draw)
     alone, alone_through = made_views(renderer, a, display, states, optics, draw, stack)
     torch.testing.assert_close(views, alone)

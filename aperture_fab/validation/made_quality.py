@@ -26,6 +26,7 @@ from aperture_fab.metrics import gain_psnr_db
 from aperture_fab.optics.as_made import (
     MadeOptics,
     draw_errors,
+    join_white,
     made_views,
     made_views_and_white,
 )
@@ -33,7 +34,7 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import combine_states
 
-__all__ = ["MadeQuality", "judge_made"]
+__all__ = ["MadeQuality", "judge_made", "judge_stacks"]
 
 #: Seed stream of the made copies (apart from the eye states').
 COPY_STREAM = 2
@@ -69,14 +70,26 @@ class MadeQuality:
         return -10 * np.log10(np.array(mse))
 
 
+def judge_stacks(renderer: Renderer, displays: np.ndarray) -> list[torch.Tensor]:
+    """The stacks `judge_made` renders displays (T, C, H, W) from: each display's
+    `renderer.display_stack`, the first joined with the white display's (`join_white`: the
+    plate's efficiency rides in its render). Plates that show the same content share them."""
+    with torch.no_grad():
+        stacks = [renderer.display_stack(torch.as_tensor(d, dtype=renderer.dtype,
+                                                         device=renderer.device))
+                  for d in displays]
+        stacks[0] = join_white(renderer, stacks[0])
+    return stacks
+
+
 def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
                displays: np.ndarray, optics: MadeOptics, states: EyeStates,
                copies: int = MADE_COPIES, seed: int = 0,
                stacks: Sequence[torch.Tensor] | None = None) -> MadeQuality:
     """Judge a plate of made open fractions (rows, cols) showing displays (T, C, H, W) for
     targets (T, C, ny, nx): `copies` made copies (the nominal one when the process has no random
-    error), each over every eye state of `states`. stacks: the displays'
-    `renderer.display_stack`s, when the caller has them (plates that show the same content)."""
+    error), each over every eye state of `states`. stacks: the displays' `judge_stacks`, when
+    the caller has them (plates that show the same content)."""
     if not (isinstance(copies, int) and copies >= 1):
         raise ValueError(f"copies = {copies!r} must be a whole number >= 1.")
     dtype, device = renderer.dtype, renderer.device
@@ -85,22 +98,23 @@ def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarra
     count = copies if optics.has_errors else 1
     draws = [draw_errors(tuple(open_fraction.shape), optics, rng) if optics.has_errors else None
              for _ in range(count)]
+    if stacks is None:
+        stacks = judge_stacks(renderer, displays)
     psnr = np.zeros((len(targets), count, len(states)))
     level = np.zeros((len(targets), count))
     white = np.zeros(count)
     with torch.no_grad():
         for t, display in enumerate(displays):
             shown = torch.as_tensor(display, dtype=dtype, device=device)
-            stack = renderer.display_stack(shown) if stacks is None else stacks[t]
             for k, draw in enumerate(draws):
                 # The stack is the display's alone: every copy, moved holes or not, reads it.
                 # The first target's render carries the white display too (the efficiency).
                 if t == 0:
-                    views, _, light = made_views_and_white(renderer, a, shown, stack, states,
-                                                           optics, draw)
+                    views, _, light = made_views_and_white(renderer, a, shown, stacks[0],
+                                                           states, optics, draw)
                     white[k] = float(light.mean())
                 else:
-                    views, _ = made_views(renderer, a, shown, states, optics, draw, stack)
+                    views, _ = made_views(renderer, a, shown, states, optics, draw, stacks[t])
                 psnr[t, k] = gain_psnr_db(views.cpu().double().numpy()[None], targets[t : t + 1])[0]
                 level[t, k] = float(views.mean())
     return MadeQuality(psnr, float(white.mean()), float(level.mean()))

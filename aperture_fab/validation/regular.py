@@ -35,7 +35,7 @@ from aperture_fab.optics.baselines import PinholeArray, elemental_display
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
-from aperture_fab.validation.made_quality import MadeQuality, judge_made
+from aperture_fab.validation.made_quality import MadeQuality, judge_made, judge_stacks
 
 __all__ = ["RegularArray", "RegularFront", "lattice_scene", "regular_arrays", "regular_front",
            "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
@@ -229,9 +229,7 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
             renderer = Renderer(regular.scene, device=device, dtype=dtype)
             target_t = torch.as_tensor(targets, dtype=dtype, device=device)
             displays = elemental(regular, target_t)
-            with torch.no_grad():
-                stacks = [renderer.display_stack(torch.as_tensor(d, dtype=dtype, device=device))
-                          for d in displays]
+            stacks = judge_stacks(renderer, displays)
             last = regular.scene, renderer, displays, stacks
         _, renderer, displays, stacks = last
         a = regular.array.open_fraction
