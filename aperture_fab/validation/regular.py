@@ -32,6 +32,7 @@ from aperture_fab.fabrication.process import Process, UnmakeableError
 from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
 from aperture_fab.optics.as_made import MadeOptics
 from aperture_fab.optics.baselines import PinholeArray, elemental_display
+from aperture_fab.optics.diffraction import airy_mixture
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
@@ -57,7 +58,8 @@ class RegularArray:
     """One regular array: one hole of the same made size in every cell of its own plate.
 
     scene: the part's scene with the array's plate (`lattice_scene`).
-    optics: how the process makes that plate (`made_optics`: errors, veil, diffraction).
+    optics: how the process makes that plate (`made_optics`: errors, veil; diffraction by the
+        family's Airy mixture, whose classes are its ladder of diameters).
     array: its holes; `array.open_fraction` is (rows, cols) of that plate, float64.
     """
 
@@ -121,12 +123,22 @@ def regular_arrays(scene: Scene, process: Process,
             "holes and webs need a coarser pitch; choose another process.")
     first, first_sizes = lattices[0]
     smallest = float(_made_diameters(first_sizes, first.plate.pitch_mm)[0])
+    ladders = [_ladder(_made_diameters(sizes, lattice.plate.pitch_mm), smallest,
+                       sizes.levels is not None) for lattice, sizes in lattices]
+    # One Airy mixture for the whole family, its classes the ladder's rungs (a lattice's
+    # largest hole falls between two): 3 to 5 times fewer kernels than one per lattice, which
+    # took 2.2 of the seed preset's 3.5 s made-part block, and exact at the rungs.
+    rungs = math.ceil(math.log(max(d[-1] for d in ladders) / smallest) / math.log(SIZE_RATIO)
+                      - _SLACK)
+    eye = scene.eye
+    mixture = airy_mixture(smallest, smallest * SIZE_RATIO**rungs, eye.view_step,
+                           eye.view_pixels, classes=rungs + 1)
     out = []
-    for lattice, sizes in lattices:
+    for (lattice, _), diameters in zip(lattices, ladders, strict=True):
         pitch = lattice.plate.pitch_mm
-        optics = made_optics(lattice, process)
+        optics = replace(made_optics(lattice, process, diffraction=False), diffraction=mixture)
         ncx, ncy = lattice.plate.cells
-        for diameter in _ladder(_made_diameters(sizes, pitch), smallest, sizes.levels is not None):
+        for diameter in diameters:
             level = float(open_fraction_of(diameter / 2, pitch))
             holes = PinholeArray(np.full((ncy, ncx), level), 1, (ncy // 2, ncx // 2),
                                  float(diameter))
