@@ -46,8 +46,9 @@ MAX_REGULAR_PITCH_MM = 3.0
 #: The family's lattice pitches are the multiples of this (the default plate's cell pitch).
 PITCH_STEP_MM = 0.25
 #: Neighbouring hole diameters of the family's ladder: a sqrt(2) step doubles the light from
-#: one size to the next. Neighbours' p10 differ by 0.4 dB or less above 50 um (the natural
-#: target, near-eye preset, elemental images, 16 eye states, at 2.5 and 3 mm pitch).
+#: one size to the next. Neighbours' p10 differ by 0.4 dB or less from 50 um to 1.6 mm, by up
+#: to 0.7 dB above, where the holes fill their cells (the natural target, near-eye preset,
+#: elemental images, 16 eye states, at 2.5 and 3 mm pitch).
 SIZE_RATIO = math.sqrt(2.0)
 #: Relative slack of float comparisons (pitches, diameters).
 _SLACK = 1e-9
