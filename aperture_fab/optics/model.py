@@ -160,15 +160,23 @@ class StackShape:
     slack_mm: float
 
 
-def stack_shape(scene: Scene, oversample: int = STACK_OVERSAMPLE) -> StackShape:
-    """The display stack's shape, levels and kernels' extent for a scene (see StackShape)."""
+def stack_shape(scene: Scene, oversample: int = STACK_OVERSAMPLE,
+                max_radius_mm: float | None = None) -> StackShape:
+    """The display stack's shape, levels and kernels' extent for a scene (see StackShape),
+    for holes up to max_radius_mm (None: the largest a cell holds)."""
     if not (isinstance(oversample, int) and oversample >= 1):
         raise ValueError(f"oversample = {oversample!r}; allowed: an integer >= 1 (stack "
                          "samples per display pixel along each axis).")
     optics = Optics.of(scene)
     plate, eye, display = scene.plate, scene.eye, scene.display
+    radius = plate.max_radius_mm
+    if max_radius_mm is not None:
+        if not (math.isfinite(max_radius_mm) and 0 < max_radius_mm <= radius):
+            raise ValueError(f"max_radius_mm = {max_radius_mm!r}; allowed: above 0 and up to "
+                             f"the cell's largest hole, {radius:g} mm (or None for that).")
+        radius = max_radius_mm
     # Wide enough for an eye focused at infinity too (|mu| = 1), for eye states off nominal.
-    window_max = max(abs(optics.window_scale), 1.0) * plate.max_radius_mm
+    window_max = max(abs(optics.window_scale), 1.0) * radius
     levels = math.ceil(window_max / (LEVEL_SPACING_PX * min(display.pixel_mm))) + 1
     levels = min(MAX_LEVELS, max(2, levels))
     # The view pixel's box on the display, at the nominal focus (see docs/model.md); cover
@@ -276,6 +284,11 @@ class Renderer:
         there without Triton).
     oversample: display stack samples per display pixel along each axis (STACK_OVERSAMPLE by
         default; 1 is faster, about 20 % per optimizer iteration, and less exact: see there).
+    max_radius_mm: the largest hole radius it renders (made errors included); None: the
+        largest a cell holds. The display stack's levels and kernels span the windows of holes
+        up to it, so a plate of holes much smaller than its cells (a regular array of small
+        holes on a coarse lattice) renders from a far smaller stack; a larger hole reads the
+        largest window (too sharp).
     """
 
     def __init__(
@@ -287,6 +300,7 @@ class Renderer:
         hole_offset_mm: np.ndarray | None = None,
         backend: Backend = "auto",
         oversample: int = STACK_OVERSAMPLE,
+        max_radius_mm: float | None = None,
     ) -> None:
         self.scene = scene
         self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
@@ -296,7 +310,7 @@ class Renderer:
         self.backend = backend_for(backend, self.device)
         self.optics = opt = Optics.of(scene)
         eye, display = scene.eye, scene.display
-        self.shape = shape = stack_shape(scene, oversample)
+        self.shape = shape = stack_shape(scene, oversample, max_radius_mm)
         self.window_max_mm = shape.window_max_mm
         self.oversample = oversample
         self.kernel_size, self.pad = shape.kernel_size, shape.pad

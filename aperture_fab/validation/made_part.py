@@ -85,7 +85,8 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
                 along.append(content.to("cpu", torch.float64, copy=True).numpy())
 
         fit_display(regular.scene, targets, regular.array.open_fraction, shown, settings,
-                    fit_iterations, optics=regular.optics, on_iteration=keep)
+                    fit_iterations, optics=regular.optics, max_radius_mm=regular.max_radius_mm,
+                    on_iteration=keep)
         return along
 
     fitted = regular_front(targets, [arrays[i] for i in chosen], evaluation, copies, seed,

@@ -38,8 +38,8 @@ from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
 from aperture_fab.validation.made_quality import MadeQuality, judge_made, judge_stacks
 
-__all__ = ["RegularArray", "RegularFront", "lattice_scene", "regular_arrays", "regular_front",
-           "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
+__all__ = ["RegularArray", "RegularFront", "elemental", "lattice_scene", "regular_arrays",
+           "regular_front", "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
 
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
 MAX_REGULAR_PITCH_MM = 3.0
@@ -50,6 +50,9 @@ PITCH_STEP_MM = 0.25
 #: to 0.7 dB above, where the holes fill their cells (the natural target, near-eye preset,
 #: elemental images, 16 eye states, at 2.5 and 3 mm pitch).
 SIZE_RATIO = math.sqrt(2.0)
+#: A regular array is rendered for holes up to its made radius plus this many standard
+#: deviations of the process's radius error (`RegularArray.max_radius_mm`).
+RADIUS_SIGMAS = 4.0
 #: Relative slack of float comparisons (pitches, diameters).
 _SLACK = 1e-9
 
@@ -72,6 +75,15 @@ class RegularArray:
     def pitch_mm(self) -> float:
         """The lattice pitch (its plate's cells are square)."""
         return max(self.scene.plate.pitch_mm)
+
+    @property
+    def max_radius_mm(self) -> float:
+        """The largest hole radius a made copy has, to render it with (`Renderer`): the made
+        radius plus RADIUS_SIGMAS of the process's radius error, at most the cell's largest.
+        A small hole on a coarse lattice then renders from a far smaller display stack (a
+        0.4 mm hole on 2.5 mm cells: 6 levels instead of 24)."""
+        radius = self.array.diameter_mm / 2 + RADIUS_SIGMAS * self.optics.radius_sigma_mm
+        return min(radius, self.scene.plate.max_radius_mm)
 
 
 def lattice_scene(scene: Scene, pitch_mm: float) -> Scene:
@@ -233,24 +245,26 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
     the highest p10 (mean over targets) among those with at least `eye_level` light at the eye
     (when none has, the brightest). progress(done, total) is told after each array."""
     eff, level, p10, p50, p90 = [], [], [], [], []
-    # Renderer and elemental images depend on the lattice alone, not the hole size: the
-    # consecutive arrays of one lattice (regular_arrays' order) share them, and the stacks of
-    # their elemental images (a fitted display is each array's own).
-    last: tuple[Scene, Renderer, np.ndarray, list[torch.Tensor]] | None = None
+    target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    # Elemental images depend on the lattice alone, not the hole size: the consecutive arrays
+    # of one lattice (regular_arrays' order) share them, their renderer and stacks. A fitted
+    # content is each array's own, rendered from a stack sized to its holes.
+    lattice: tuple[Scene, np.ndarray, Renderer, list[torch.Tensor]] | None = None
     for index, regular in enumerate(arrays):
-        if last is None or last[0] is not regular.scene:
-            renderer = Renderer(regular.scene, device=device, dtype=dtype)
-            target_t = torch.as_tensor(targets, dtype=dtype, device=device)
-            displays = elemental(regular, target_t)
-            stacks = judge_stacks(renderer, displays)
-            last = regular.scene, renderer, displays, stacks
-        _, renderer, displays, stacks = last
         a = regular.array.open_fraction
         if fit is not None:
+            renderer = Renderer(regular.scene, device=device, dtype=dtype,
+                                max_radius_mm=regular.max_radius_mm)
             quality = max((judge_made(renderer, targets, a, shown, regular.optics, states,
-                                      copies, seed) for shown in fit(regular, displays)),
+                                      copies, seed)
+                           for shown in fit(regular, elemental(regular, target_t))),
                           key=lambda q: _rank(q, eye_level))
         else:
+            if lattice is None or lattice[0] is not regular.scene:
+                renderer = Renderer(regular.scene, device=device, dtype=dtype)
+                displays = elemental(regular, target_t)
+                lattice = regular.scene, displays, renderer, judge_stacks(renderer, displays)
+            _, displays, renderer, stacks = lattice
             quality = judge_made(renderer, targets, a, displays, regular.optics, states, copies,
                                  seed, stacks)
         eff.append(quality.efficiency)
