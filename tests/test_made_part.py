@@ -148,12 +148,15 @@ def test_a_fitted_rival_keeps_its_best_content_that_is_bright_enough(one_pitch, 
                           for t in targets])
     noise = np.random.default_rng(0).normal(0.0, 0.5, elemental.shape)
     contents = {"noisy": np.clip(elemental + noise, 0.0, 1.0), "dim": 0.4 * elemental}
-    judged = {name: judge_made(renderer, targets, array.array.open_fraction, shown, MadeOptics(),
+    # a fitted rival renders from a stack sized to its holes (RegularArray.max_radius_mm)
+    rival = made_by([array], MadeOptics())[0]
+    sized = Renderer(scene, dtype=torch.float64, max_radius_mm=rival.max_radius_mm)
+    judged = {name: judge_made(sized, targets, array.array.open_fraction, shown, MadeOptics(),
                                states) for name, shown in contents.items()}
     assert judged["dim"].percentile(10).mean() > judged["noisy"].percentile(10).mean() + 0.5
     assert judged["dim"].eye_level < 0.5 * judged["noisy"].eye_level
     level = floor_share * judged["noisy"].eye_level
-    front = regular_front(targets, made_by([array], MadeOptics()), states,
+    front = regular_front(targets, [rival], states,
                           fit=lambda regular, shown: list(contents.values()), eye_level=level,
                           dtype=torch.float64)
     np.testing.assert_allclose(front.p10[0], judged[kept].percentile(10))
