@@ -74,7 +74,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         def fit(regular: RegularArray, shown: np.ndarray, n: int = iterations
                 ) -> list[np.ndarray]:
             return [fit_display(regular.scene, targets, regular.array.open_fraction, shown,
-                                settings, n, optics=regular.optics)[0]]
+                                settings, n, optics=regular.optics,
+                                max_radius_mm=regular.max_radius_mm)[0]]
 
         front = regular_front(targets, [rival], states, args.copies,
                               fit=fit if iterations > 0 else None)
