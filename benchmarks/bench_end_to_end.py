@@ -2,7 +2,7 @@
 validate (re-traces, diffraction, tolerances) and report.
 
 Run: .venv/bin/python benchmarks/bench_end_to_end.py [--target natural] [--repeats 1]
-     [--preset near-eye] [--iterations N] [--json PATH]
+     [--preset near-eye] [--iterations N] [--design-args "--cells 40 40 ..."] [--json PATH]
 
 Each repeat runs the command line a user types, `aperture-fab design TARGET --out DIR/plate.stl`,
 in a fresh child process (imports and start-up included), with the default preset and process,
@@ -20,6 +20,7 @@ import json
 import math
 import os
 import platform
+import shlex
 import statistics
 import subprocess
 import sys
@@ -44,7 +45,8 @@ GOAL_S = 180.0
 GOAL_AFTER_SHARE = 0.25
 
 
-def run_once(target: str, preset: str, iterations: int | None, folder: Path) -> dict[str, Any]:
+def run_once(target: str, preset: str, iterations: int | None, folder: Path,
+             extra: Sequence[str] = ()) -> dict[str, Any]:
     """One `aperture-fab design` run in a child process: wall seconds and report.json timings."""
     image = folder / f"{target}.png"
     image.write_bytes(encode_png(EXAMPLES[target]()))
@@ -53,6 +55,7 @@ def run_once(target: str, preset: str, iterations: int | None, folder: Path) -> 
                str(out / "plate.stl"), "--preset", preset, "--quiet"]
     if iterations is not None:
         command += ["--iterations", str(iterations)]
+    command += list(extra)
     start = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - start
@@ -77,6 +80,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--preset", choices=list(PRESETS), default=DEFAULT_PRESET)
     parser.add_argument("--iterations", type=int, default=None,
                         help="optimizer iterations (default: the preset's)")
+    parser.add_argument("--design-args", default="",
+                        help="more flags for aperture-fab design, one string, e.g. "
+                        "'--cells 80 80 --pitch-mm 0.25'")
     parser.add_argument("--repeats", type=int, default=1, help="runs; the median is quoted")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     return parser.parse_args(argv)
@@ -90,7 +96,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     runs = []
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            runs.append(run_once(args.target, args.preset, args.iterations, Path(tmp)))
+            runs.append(run_once(args.target, args.preset, args.iterations, Path(tmp),
+                                 shlex.split(args.design_args)))
     stages = sorted({k for r in runs for k in r["stages_s"]})
     median = {k: statistics.median(r["stages_s"].get(k, 0.0) for r in runs) for k in stages}
     wall = statistics.median(r["wall_s"] for r in runs)

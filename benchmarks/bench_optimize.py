@@ -12,14 +12,15 @@ alike and the ratios between cases stay fair):
   thread pools, lazy kernel loading, allocator).
 - seed-100: the seed scene with 100 x 100 cells and display pixels (view stays 28 x 28),
   600 iterations: seconds per design, likewise.
-- near-eye: the `near-eye` preset (80 x 80 cells, 128 x 128 view, RGB, display content
-  optimized, its eye distribution) with STATES = 16 eye states drawn afresh per iteration
+- near-eye: the `near-eye` preset on issue 20's plate (80 x 80 cells of 0.25 mm, the preset's
+  until 2026-11-29; it now has 40 x 40 of 0.5 mm), 128 x 128 view, RGB, display content
+  optimized, its eye distribution, with STATES = 16 eye states drawn afresh per iteration
   (issue 9's figure, whatever the preset's own count), renderer backend "auto" (the fused CPU
   kernels on a CPU), target natural: seconds per iteration.
 - near-eye-1: near-eye with one eye state drawn per iteration (a random pupil position, size and
   focus: the kernels' per-state path).
 - nominal: the `near-eye-nominal` preset (near-eye at its one nominal eye state, the behaviour
-  before eye distributions), backend "auto": the single-state iteration.
+  before eye distributions; issue 20's plate), backend "auto": the single-state iteration.
 - nominal-torch: the same with backend "torch": the previous code path (pair tables and
   grid_sample, which is what ran before the CPU kernels and is still the CUDA path), the
   reference the single-state and 16-state goals are measured against, side by side in this run.
@@ -131,6 +132,9 @@ STATES = 16
 REFERENCE_CASE = "nominal-torch"
 SINGLE_CASE = "nominal"
 STATES_CASE = "near-eye"
+#: The near-eye cases' plate: issue 20's table was measured on it (the near-eye preset's until
+#: 2026-11-29), so the figures stay comparable.
+DENSE_PLATE = {"plate.cells": [80, 80], "plate.pitch_mm": [0.25, 0.25]}
 #: View of the near-eye cases under --quick (a smoke test, not figures).
 QUICK_VIEW = [32, 32]
 #: Copy-bandwidth arrays (MiB each) for the STREAM-like copy; smaller under --quick.
@@ -188,16 +192,17 @@ CASES: dict[str, Case] = {
         Case("near-eye", "near-eye preset, 80 x 80 cells, 128 x 128 view, RGB, 16 eye states",
              "near-eye", "natural", "iteration", iterations=3, quick_iterations=1, warmup=1,
              quick_warmup=1, goal_s=None, reference_s=None,
-             overrides={"optimizer.eye_states": STATES}),
+             overrides={**DENSE_PLATE, "optimizer.eye_states": STATES}),
         Case("near-eye-1", "near-eye, 1 eye state drawn per iteration", "near-eye", "natural",
              "iteration", iterations=6, quick_iterations=1, warmup=1, quick_warmup=1,
-             goal_s=None, reference_s=None, overrides={"optimizer.eye_states": 1}),
+             goal_s=None, reference_s=None, overrides={**DENSE_PLATE, "optimizer.eye_states": 1}),
         Case(SINGLE_CASE, "near-eye-nominal preset (1 nominal state)", "near-eye-nominal",
              "natural", "iteration", iterations=8, quick_iterations=1, warmup=2, quick_warmup=1,
-             goal_s=GOAL_NEAR_EYE_ITERATION_S, reference_s=None),
+             goal_s=GOAL_NEAR_EYE_ITERATION_S, reference_s=None, overrides=DENSE_PLATE),
         Case(REFERENCE_CASE, "near-eye-nominal, backend torch (the previous code path)",
              "near-eye-nominal", "natural", "iteration", iterations=8, quick_iterations=1,
-             warmup=2, quick_warmup=1, goal_s=None, reference_s=None, backend="torch"),
+             warmup=2, quick_warmup=1, goal_s=None, reference_s=None, backend="torch",
+             overrides=DENSE_PLATE),
         # The near-eye optics (gap, eye) at a finer scale: 50 um cells (holes that small need a
         # photo-etched foil, hence 0.1 mm thick), a 25 um pixel (~1000 ppi) display as wide as
         # the plate, and a 512 x 512 view; the nominal eye (one state), as before eye

@@ -1206,7 +1206,7 @@ CONFIG_FILES: list[Case] = [
          _config("[photometry]\nbogus = 1\n")),
     # export, render and validate read a config too
     Case("empty config (export)", EXPORT_BAD, bad("open_fraction has shape (16, 16)",
-                                                  "(80, 80)"), _write("bad.toml", "")),
+                                                  "(40, 40)"), _write("bad.toml", "")),
     Case("binary design.toml (export)", ["export", "{d}/design.npz", "--out", "{d}/x/"],
          bad("{d}/design.toml is not UTF-8 text"), _write("design.toml", b"\x89PNG\xff\xfe")),
     Case("binary design.toml (render)", ["render", "{d}/design.npz", "--out", "{d}/v.png"],

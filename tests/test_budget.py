@@ -89,6 +89,7 @@ def test_small_scene_passes_and_returns_the_estimate() -> None:
 
 def test_refusal_names_the_estimate_the_budget_and_the_fix() -> None:
     config = _config(**{"eye.view_pixels": [3000, 3000], "optimizer.precision": "float64",
+                        "plate.cells": [80, 80], "plate.pitch_mm": [0.25, 0.25],
                         "optimizer.eye_states": 16})
     peak = budget.estimate_bytes(config.scene, 16, "kernel", "float64")
     with pytest.raises(ValueError) as refused:

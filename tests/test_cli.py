@@ -48,7 +48,7 @@ def test_presets_lists_every_preset_with_its_key_numbers(capsys: pytest.CaptureF
     assert set(PRESETS) == {"near-eye", "seed", "near-eye-nominal"}
     for name in PRESETS:
         assert f"{name}:" in out
-    for numbers in ("400 x 400 pixels", "80 x 80 cells", "gap 10 mm", "pupil 4 mm",
+    for numbers in ("400 x 400 pixels", "40 x 40 cells", "gap 10 mm", "pupil 4 mm",
                     "adam lr 0.1", "300 iterations",  # near-eye
                     "28 x 28 cells", "sgd lr 0.8 momentum 0.9", "init random",  # seed
                     "eyebox 4 x 4 mm ellipse", "the nominal eye only"):  # eye states

@@ -74,7 +74,7 @@ def test_near_eye_is_the_default_and_has_the_stated_numbers() -> None:
     assert (display.width_mm, display.height_mm, display.pixels) == (20.0, 20.0, (400, 400))
     assert display.pixel_mm == pytest.approx((0.05, 0.05))
     assert (plate.cells, plate.pitch_mm, plate.gap_mm, plate.thickness_mm, plate.hole_axis) == (
-        (80, 80), (0.25, 0.25), 10.0, PHOTOMASK_EMULSION_MM, "chief_ray")
+        (40, 40), (0.5, 0.5), 10.0, PHOTOMASK_EMULSION_MM, "chief_ray")
     assert (eye.pupil_mm, eye.eye_relief_mm, eye.focus_mm) == (4.0, 10.0, None)
     assert eye.view_pixels == (128, 128)
     assert eye.positions_mm == ((0.0, 0.0),) and eye.weights == (1.0,)
@@ -107,7 +107,7 @@ def test_seed_preset_is_the_dissertation_setting() -> None:
 
 
 @pytest.mark.parametrize("name, expected", [
-    ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "80 x 80 cells", "0.25 x 0.25",
+    ("near-eye", ["20 x 20 mm", "400 x 400 pixels", "50 x 50 um", "40 x 40 cells", "0.5 x 0.5",
                   "gap 10 mm", "thickness 0.005 mm", "pupil 4 mm", "eye relief 10 mm",
                   "128 x 128", "43.6 x 43.6 deg", "optimized", "adam lr 0.1", "150 iterations"]),
     ("seed", ["10 x 15 mm", "28 x 28 pixels", "28 x 28 cells", "0.3571 x 0.5357", "gap 10 mm",

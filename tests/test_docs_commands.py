@@ -315,7 +315,7 @@ def test_the_readme_config_block_resolves() -> None:
 
 
     config = resolve(None, parse_toml(readme_config(), "README.md"))
-    assert config.scene.plate.cells == (80, 80)
+    assert config.scene.plate.cells == (40, 40)
     assert config.fabrication.process.name == "photomask"
 
 

@@ -29,16 +29,17 @@ from aperture_fab.targets import natural
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-#: What the default preset's photomask plate (0.005 mm, 0.25 mm cells, 80 x 80) needs per
+#: What the default preset's photomask plate (0.005 mm, 0.5 mm cells, 40 x 40) needs per
 #: process: the design flags the refusal names.
 DEFAULT_FIXES = {
-    "laser": ["--thickness-mm", "0.1", "--pitch-mm", "0.5", "--cells", "40", "40"],
+    "laser": ["--thickness-mm", "0.1"],
     "etched-foil": ["--thickness-mm", "0.025"],
     "fdm": ["--thickness-mm", "0.4", "--pitch-mm", "2.3", "--cells", "8", "8"],
     "resin": ["--thickness-mm", "0.2"],
 }
 #: The same for tests/conftest.py's tiny design (16 x 16 cells of 0.25 mm).
-TINY_FIXES = {**DEFAULT_FIXES, "laser": [*DEFAULT_FIXES["laser"][:4], "--cells", "8", "8"],
+TINY_FIXES = {**DEFAULT_FIXES,
+              "laser": ["--thickness-mm", "0.1", "--pitch-mm", "0.5", "--cells", "8", "8"],
               "fdm": [*DEFAULT_FIXES["fdm"][:4], "--cells", "1", "1"]}
 #: A command in backticks in a message.
 QUOTED = re.compile(r"`([^`]+)`")
@@ -145,7 +146,7 @@ def test_design_refusal_repeats_the_command_with_the_flags(
 
 @pytest.fixture(scope="module")
 def default_design(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A design of the default preset (photomask film, 80 x 80 cells) after one iteration,
+    """A design of the default preset (photomask film, 40 x 40 cells) after one iteration,
     not validated: what `aperture-fab design img.png` makes, fast."""
     folder = tmp_path_factory.mktemp("default") / "x"
     folder.parent.joinpath("img.png").write_bytes(encode_png(natural(128)))

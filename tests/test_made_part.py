@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -268,3 +269,19 @@ def test_made_verdict_levels(margin, level):
     assert "20.0 dB at 2.5 % light (0.4 % of the panel's white at the eye" in verdict.text
     if margin is not None:  # what the family searched
         assert "among pitches to 3 mm and holes to 234 um" in verdict.text
+
+
+@pytest.mark.parametrize(("rival_pitch_mm", "flags"), [
+    (2.5, "--pitch-mm 2.5 --cells 8 8"), (2.75, "--pitch-mm 2.75 --cells 7 7"), (0.5, None)])
+def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch_mm, flags):
+    found = block(-0.5)
+    found["regular"]["best"]["pitch_mm"] = rival_pitch_mm
+    report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
+                             config={"optimizer": {}}, fabrication={"process": "photomask"})
+    fixes = made_verdict(found, report).fixes
+    named = [fix for fix in fixes if "best regular array's lattice" in fix]
+    if flags is None:
+        assert not named
+    else:
+        assert len(named) == 1 and flags in named[0]
+    assert not any("more iterations" in fix for fix in fixes)

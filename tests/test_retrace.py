@@ -137,7 +137,8 @@ def near_eye_case(seed: int) -> tuple[Scene, Part, np.ndarray]:
     open fractions in [0, 0.35] and a random display, pixel by pixel (the noisiest content)."""
     from aperture_fab.config.config import resolve
 
-    scene = resolve("near-eye", overrides={"plate.thickness_mm": 0.3}).scene
+    scene = resolve("near-eye", overrides={"plate.thickness_mm": 0.3, "plate.cells": [80, 80],
+                                           "plate.pitch_mm": [0.25, 0.25]}).scene
     rng = np.random.default_rng(seed)
     part = make_part(rng.uniform(0.0, 0.35, scene.plate.cells[::-1]), scene,
                      FabricationSettings(PROCESSES["resin"]))
@@ -165,7 +166,7 @@ def test_one_pixel_lines_need_the_oversampled_stack():
 
     scene = resolve("near-eye", overrides={
         "display.pixels": [200, 200], "display.width_mm": 10.0, "display.height_mm": 10.0,
-        "plate.cells": [40, 40], "eye.view_pixels": [64, 64]}).scene
+        "plate.cells": [40, 40], "plate.pitch_mm": [0.25, 0.25], "eye.view_pixels": [64, 64]}).scene
     rng = np.random.default_rng(0)
     low, high = design_bounds(scene, PROCESS)
     part = make_part(rng.uniform(low, high, scene.plate.cells[::-1]), scene,

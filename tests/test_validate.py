@@ -65,7 +65,8 @@ def validated(tmp_path_factory):
     target.write_bytes(encode_png(digit("3")))
     out = folder / "out"
     flags = ["design", str(target), "--out", str(out / "plate.stl"), "--quiet", "--process",
-             "photomask", "--thickness-mm", "0.1", "--cells", "16", "16", "--view-pixels", "16",
+             "photomask", "--thickness-mm", "0.1", "--cells", "16", "16", "--pitch-mm", "0.25",
+             "--view-pixels", "16",
              "16", "--iterations", "3", "--device", "cpu", "--tolerance-samples", "3",
              "--mesh-samples", "16"]
     assert main(flags) in (EXIT_OK, EXIT_REPORT_FAIL)
@@ -141,7 +142,8 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
 
     config = resolve("near-eye-nominal", overrides={
         "display.width_mm": 4.0, "display.height_mm": 4.0, "display.pixels": [32, 32],
-        "plate.cells": [16, 16], "eye.view_pixels": [16, 16], "optimizer.device": "cpu",
+        "plate.cells": [16, 16], "plate.pitch_mm": [0.25, 0.25], "eye.view_pixels": [16, 16],
+        "optimizer.device": "cpu",
         "optimizer.precision": "float64"})
     targets, shown = prepare_targets([digit("3")], config.scene.eye.view_pixels,
                                      config.scene.display.pixels)

@@ -10,8 +10,13 @@ Why the "near-eye" numbers (the default):
   of it about as wide as the field a pinhole plate 1 cm away can usefully show;
 - gap 10 mm: a slim device, and a pinhole height at which the best single hole is about 0.1 mm
   across (sqrt(2 lambda h) at 550 nm), so diffraction and geometric blur are balanced;
-- cells 80 x 80 at 0.25 mm pitch: the plate covers the display, and a cell spans about 5 display
-  pixels, so each hole has its own small window of content to show;
+- cells 40 x 40 at 0.5 mm pitch: the plate covers the display, a cell spans 10 display pixels
+  and holds holes up to 0.48 mm. Finer cells buy nothing as made: 80 x 80 cells of 0.25 mm
+  (the default until 2026-11-29) gave parts within 0.2 dB p10 of these on a photo, a digit, a
+  letter and a line pattern (20.5 / 16.0 / 16.5 / 12.6 dB against 20.6 / 16.0 / 16.4 /
+  12.5), as the moving eye averages fine structure away, at three times the optimizer's time
+  (the renderer's work grows with the holes under the pupil); 1 mm cells lose up to 0.4 dB
+  on the letter and the line pattern (README, "The part as made");
 - process photomask film, thickness 0.005 mm (its emulsion, the only opaque layer): it makes
   holes from 0.025 mm with 0.016 mm webs and is opaque (OD 4), where resin's 0.088 mm holes and
   OD 2 leave a grey veil over a view six times brighter than the light through the holes
@@ -37,9 +42,9 @@ Why the "near-eye" numbers (the default):
   hole), 150 iterations that all see the part as made (quantize_share 1: holes the process
   makes, a made copy's errors, diffraction and the material's veil; docs/model.md), with a
   light floor of 2 % (min_efficiency), stopping after 60 iterations without progress; 8 eye
-  states per iteration: the photomask plate is dense (thousands of holes), which doubles the
-  renderer's cost per state, and 8 states reach about what 16 do as made on natural (20.3 dB
-  p10 at 2.4 % light against 20.7 at 2.2 %, both judged as made over 4 copies x 32 states);
+  states per iteration: a state's cost is the renderer's, and 8 states reached about what 16
+  do as made on natural (20.3 dB p10 at 2.4 % light against 20.7 at 2.2 %, both judged as made
+  over 4 copies x 32 states, on the 0.25 mm cells);
   the loss is the mean over the worst half of each iteration's states (tail_share 0.5), which
   the report's p10 rewards: against the plain mean, +0.6 to +1.7 dB over the best regular
   array at the part's light on the digit, the letter and the line pattern, the same on the
@@ -101,8 +106,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "display": {"width_mm": 20.0, "height_mm": 20.0, "pixels": [400, 400],
                     **_PLAIN_DISPLAY},
         "plate": {
-            "cells": [80, 80],
-            "pitch_mm": [0.25, 0.25],
+            "cells": [40, 40],
+            "pitch_mm": [0.5, 0.5],
             "gap_mm": 10.0,
             "thickness_mm": PHOTOMASK_EMULSION_MM,
             # Tilted toward the eye: straight holes in a 0.3 mm plate vignette the field's edge
@@ -207,7 +212,7 @@ PRESETS["near-eye-nominal"]["optimizer"]["eye_states"] = 1
 PRESETS["near-eye-nominal"]["optimizer"]["tail_share"] = 1.0
 
 PRESET_DESCRIPTIONS: dict[str, str] = {
-    "near-eye": "Slim near-eye display: 20 mm, 500 ppi panel, 0.25 mm cells 10 mm in front, "
+    "near-eye": "Slim near-eye display: 20 mm, 500 ppi panel, 0.5 mm cells 10 mm in front, "
     "Adam, display content optimized, designed for a moving eye (4 mm eyebox, 3 to 6 mm "
     "pupil) (default).",
     "seed": "The 2022 dissertation's setting: 28 x 28 aperture 10 mm from a 10 x 15 mm source "
