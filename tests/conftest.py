@@ -22,7 +22,12 @@ import torch
 
 from aperture_fab.config.config import Config, resolve
 from aperture_fab.io.images import encode_png
+from aperture_fab.pipeline.judged_folder import ENV_CACHE_DIR, OFF
 from aperture_fab.targets import asymmetric_marker, pixel_art
+
+# Tests judge afresh: a judgement kept by another test (or by the user's runs) would hide what
+# the code under test does. tests/test_judged_cache.py turns the cache on where it tests it.
+os.environ[ENV_CACHE_DIR] = OFF
 
 TINY_ITERATIONS = 8
 

@@ -21,6 +21,7 @@ from aperture_fab.io.atomic import write_atomic
 from aperture_fab.io.formats import PART_FORMATS, FormatName, part_files
 from aperture_fab.io.images import encode_png
 from aperture_fab.metrics import gain
+from aperture_fab.pipeline.judged_folder import default_cache
 from aperture_fab.validation.judge import judge
 from aperture_fab.validation.validate import BASELINES, Validation, validate
 
@@ -48,7 +49,8 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
     checked = validate(result.config, result.targets, displays, open_fraction, result.part,
                        fabrication.process, result.names, settings, mesh,
                        built_displays=result.built_displays,
-                       baselines={k: result.views[k] for k in BASELINES})
+                       baselines={k: result.views[k] for k in BASELINES},
+                       cache=default_cache())
     start = time.perf_counter()
     shown = result.design.displays if result.built_displays is None else result.built_displays
     report = judge(result.config, result.names, result.targets, shown, result.part,

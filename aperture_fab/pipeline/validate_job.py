@@ -31,6 +31,7 @@ from aperture_fab.io.images import TargetOptions, encode_png, prepare_targets
 from aperture_fab.io.manifest import publish, staging
 from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.pipeline.design_job import FIT_SHARE, MIN_FIT_ITERATIONS
+from aperture_fab.pipeline.judged_folder import default_cache
 from aperture_fab.pipeline.saved import (
     CONFIG_NAME,
     DESIGN_NAME,
@@ -219,7 +220,7 @@ def run_validate(
         stage("validate: the part as built, its tolerances, the mesh and diffraction")
     checked = validate(config, view_targets, designed, open_fraction, loaded,
                        fabrication.process, tuple(names), settings, loaded.mesh,
-                       built_displays=shown)
+                       built_displays=shown, cache=default_cache())
     history = (design.loss_history if design is not None and design.loss_history.size
                else fit_history)
     if history.size == 0:  # nothing was optimized here: the loss of the part as it is

@@ -9,6 +9,7 @@ display fitted the way the part's is.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -22,6 +23,7 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import fit_display
+from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.made_quality import judge_made
 from aperture_fab.validation.regular import RegularArray, regular_arrays, regular_front, rivals_at
 
@@ -55,15 +57,16 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
                     states: int, copies: int = MADE_COPIES, seed: int = 0,
                     rivals: int = FITTED_RIVALS, fit_iterations: int = RIVAL_FIT_ITERATIONS,
                     family_states: int = FAMILY_STATES,
-                    device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
-                    ) -> dict[str, Any]:
+                    device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                    cache: JudgedCache | None = None) -> dict[str, Any]:
     """report.json's "made_part" block: the part as made (made open fractions (rows, cols),
     displays (T, C, H, W)) over `copies` made copies x `states` eye states, and the best
     regular array at least as bright at the eye, searched over the family with elemental
     images (family_states eye states), its `rivals` best rivals that bright judged again with
     the display fitted like the part's (fit_iterations of `fit_display` on the same as-made
     loss; 0: elemental images), each at its best of RIVAL_FIT_SHARES of the fit: the part
-    meets its rivals at their best."""
+    meets its rivals at their best. cache: keeps the family's judgements between runs
+    (`regular_front`; they do not depend on the part)."""
     renderer = Renderer(scene, device=device, dtype=dtype)
     optics = made_optics(scene, process)
     distribution = distribution_of(scene.eye)
@@ -72,7 +75,7 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     arrays = regular_arrays(scene, process)
     family = regular_front(targets, arrays,
                            distribution.evaluation_states(min(states, family_states)),
-                           device=device, dtype=dtype)
+                           device=device, dtype=dtype, cache=cache)
     chosen = sorted(rivals_at(family, part.eye_level),
                     key=lambda i: -float(family.p10[i].mean()))[:rivals]
 
@@ -89,9 +92,13 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
                     on_iteration=keep)
         return along
 
+    # What a rival's fitted contents depend on besides the array and the targets: the fit's
+    # settings (its own iteration count, not the design's) and the points kept along it.
+    fit_key = (replace(settings, iterations=fit_iterations), fit_iterations, RIVAL_FIT_SHARES) \
+        if fit_iterations > 0 else None
     fitted = regular_front(targets, [arrays[i] for i in chosen], evaluation, copies, seed,
                            fit=fit if fit_iterations > 0 else None, eye_level=part.eye_level,
-                           device=device, dtype=dtype)
+                           device=device, dtype=dtype, cache=cache, fit_key=fit_key)
     best = fitted.best_at(part.eye_level)
     percentiles = {f"p{q}_db": part.percentile(q).tolist() for q in (10, 50, 90)}
     block: dict[str, Any] = {

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,6 +37,7 @@ from aperture_fab.optics.diffraction import airy_mixture
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
+from aperture_fab.validation.judged_cache import JudgedCache, digest
 from aperture_fab.validation.made_quality import MadeQuality, judge_made, judge_stacks
 
 __all__ = ["RegularArray", "RegularFront", "elemental", "lattice_scene", "regular_arrays",
@@ -236,37 +238,60 @@ RivalFit = Callable[[RegularArray, np.ndarray], Sequence[np.ndarray]]
 def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: EyeStates,
                   copies: int = 1, seed: int = 0, fit: RivalFit | None = None,
                   progress: Callable[[int, int], None] | None = None, eye_level: float = 0.0,
-                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
-                  ) -> RegularFront:
+                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                  cache: JudgedCache | None = None, fit_key: Any = None) -> RegularFront:
     """Judge every regular array as made (`judge_made`, its own renderer and optics), its
     display showing elemental images for the nominal eye, or with `fit`, the contents
     fit(array, elemental displays) returns (the part's display fit, so that arrays and part
     are judged alike; several: points along the fit), each array judged with the best of them:
     the highest p10 (mean over targets) among those with at least `eye_level` light at the eye
-    (when none has, the brightest). progress(done, total) is told after each array."""
+    (when none has, the brightest). progress(done, total) is told after each array.
+    cache: keeps each array's judgements (`judged_cache`) under a digest of the array, the
+    targets, states, copies, seed, dtype, device and, with a fit, `fit_key`: every value the
+    fit's contents depend on besides the array and the targets (required then)."""
+    if cache is not None and fit is not None and fit_key is None:
+        raise ValueError("regular_front: a cache with a fit needs fit_key, the values the fit's "
+                         "contents depend on (its settings), or judgements of other fits "
+                         "would be read back.")
     eff, level, p10, p50, p90 = [], [], [], [], []
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
+    common = digest("fitted" if fit is not None else "elemental", targets, states, copies, seed,
+                    dtype, torch.device(device).type, fit_key) if cache is not None else ""
+    known: dict[int, str] = {}  # digests of the scenes and optics the arrays share, by id
+
+    def key_of(regular: RegularArray) -> str:
+        for shared in (regular.scene, regular.optics):
+            if id(shared) not in known:
+                known[id(shared)] = digest(shared)
+        return digest(common, known[id(regular.scene)], known[id(regular.optics)],
+                      regular.array)
+
     # Elemental images depend on the lattice alone, not the hole size: the consecutive arrays
     # of one lattice (regular_arrays' order) share them, their renderer and stacks. A fitted
     # content is each array's own, rendered from a stack sized to its holes.
     lattice: tuple[Scene, np.ndarray, Renderer, list[torch.Tensor]] | None = None
     for index, regular in enumerate(arrays):
         a = regular.array.open_fraction
-        if fit is not None:
-            renderer = Renderer(regular.scene, device=device, dtype=dtype,
-                                max_radius_mm=regular.max_radius_mm)
-            quality = max((judge_made(renderer, targets, a, shown, regular.optics, states,
-                                      copies, seed)
-                           for shown in fit(regular, elemental(regular, target_t))),
-                          key=lambda q: _rank(q, eye_level))
-        else:
-            if lattice is None or lattice[0] is not regular.scene:
-                renderer = Renderer(regular.scene, device=device, dtype=dtype)
-                displays = elemental(regular, target_t)
-                lattice = regular.scene, displays, renderer, judge_stacks(renderer, displays)
-            _, displays, renderer, stacks = lattice
-            quality = judge_made(renderer, targets, a, displays, regular.optics, states, copies,
-                                 seed, stacks)
+        key = key_of(regular) if cache is not None else ""
+        judged = cache.get(key) if cache is not None else None
+        if judged is None:
+            if fit is not None:
+                renderer = Renderer(regular.scene, device=device, dtype=dtype,
+                                    max_radius_mm=regular.max_radius_mm)
+                judged = [judge_made(renderer, targets, a, shown, regular.optics, states, copies,
+                                     seed)
+                          for shown in fit(regular, elemental(regular, target_t))]
+            else:
+                if lattice is None or lattice[0] is not regular.scene:
+                    renderer = Renderer(regular.scene, device=device, dtype=dtype)
+                    displays = elemental(regular, target_t)
+                    lattice = regular.scene, displays, renderer, judge_stacks(renderer, displays)
+                _, displays, renderer, stacks = lattice
+                judged = [judge_made(renderer, targets, a, displays, regular.optics, states,
+                                     copies, seed, stacks)]
+            if cache is not None:
+                cache.put(key, judged)
+        quality = max(judged, key=lambda q: _rank(q, eye_level))
         eff.append(quality.efficiency)
         level.append(quality.eye_level)
         p10.append(quality.percentile(10))

@@ -69,6 +69,7 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene, open_fraction_of
+from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
@@ -161,6 +162,7 @@ def validate(
     *,
     built_displays: np.ndarray | None = None,
     baselines: Mapping[str, np.ndarray] | None = None,
+    cache: JudgedCache | None = None,
 ) -> Validation:
     """Validate a design and its part.
 
@@ -171,6 +173,7 @@ def validate(
     mesh: the mesh as written and re-read (default: part.mesh).
     baselines: `baseline_views` of these targets when the caller rendered them already (the
     design job has); None renders them.
+    cache: keeps the regular family's judgements between runs (`made_part_block`).
     """
     scene = config.scene
     device = resolve_device(config.optimizer.device)
@@ -243,7 +246,7 @@ def validate(
                 scene, config.optimizer, targets, as_built,
                 np.stack([d.cpu().double().numpy() for d in shown]), process,
                 states=settings.eye_states, copies=settings.made_copies, seed=settings.seed,
-                device=device, dtype=dtype)
+                device=device, dtype=dtype, cache=cache)
         except UnmakeableError:
             made_part = None  # a forced part: the process makes no regular family to compare
         timings["made_part_s"] = time.perf_counter() - start
