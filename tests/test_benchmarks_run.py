@@ -213,12 +213,13 @@ def test_bench_quality_quick(bench_quality: ModuleType, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_bench_end_to_end_quick(tmp_path: Path) -> None:
+@pytest.mark.parametrize("cache", ["cold", "warm"])
+def test_bench_end_to_end_quick(tmp_path: Path, cache: str) -> None:
     bench = _load("bench_end_to_end")
     out = tmp_path / "e2e.json"
     figures = bench.main(["--preset", "seed", "--iterations", "2", "--target", "digit-3",
-                          "--json", str(out)])
-    assert json.loads(out.read_text()) == figures
+                          "--cache", cache, "--json", str(out)])
+    assert json.loads(out.read_text()) == figures and figures["cache"] == cache
     stages = figures["median_stages_s"]
     for stage in ("optimize_s", "quantize_build_s", "export_s", "render_s", "report_s"):
         assert stage in stages and stages[stage] >= 0, stage
