@@ -112,6 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     points = args.points or (4 if args.quick else 8)
     repeats = args.repeats or (1 if args.quick else 2)
+    # Every repeat judges afresh: judgements kept by the first (docs/validation.md, the judged
+    # cache) would make the later ones faster. The local Ray workers inherit the environment.
+    os.environ["APERTURE_FAB_CACHE_DIR"] = "off"
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average before "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; {points} points per sweep, "
           f"{repeats} repeat(s), one CPU per point")
