@@ -37,7 +37,7 @@ from aperture_fab.validation.regular import (
     rivals_at,
 )
 from aperture_fab.validation.validate import layout_fractions
-from aperture_fab.validation.verdicts import MADE_MARGIN_DB, made_verdict
+from aperture_fab.validation.verdicts import LATTICE_FIX_BELOW_DB, MADE_MARGIN_DB, made_verdict
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -271,10 +271,14 @@ def test_made_verdict_levels(margin, level):
         assert "among pitches to 3 mm and holes to 234 um" in verdict.text
 
 
-@pytest.mark.parametrize(("rival_pitch_mm", "flags"), [
-    (2.5, "--pitch-mm 2.5 --cells 8 8"), (2.75, "--pitch-mm 2.75 --cells 7 7"), (0.5, None)])
-def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch_mm, flags):
-    found = block(-0.5)
+@pytest.mark.parametrize(("rival_pitch_mm", "margin", "flags"), [
+    (2.5, LATTICE_FIX_BELOW_DB - 1.5, "--pitch-mm 2.5 --cells 8 8"),
+    (2.75, LATTICE_FIX_BELOW_DB - 0.5, "--pitch-mm 2.75 --cells 7 7"),
+    (2.5, LATTICE_FIX_BELOW_DB, None), (0.5, LATTICE_FIX_BELOW_DB - 1.5, None)])
+def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch_mm, margin,
+                                                                     flags):
+    """Below LATTICE_FIX_BELOW_DB over a rival on a coarser lattice than the part's cells."""
+    found = block(margin)
     found["regular"]["best"]["pitch_mm"] = rival_pitch_mm
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {}}, fabrication={"process": "photomask"})
