@@ -127,7 +127,8 @@ EXAMPLES: dict[str, str] = {
     ".venv/bin/python benchmarks/bench_quality.py [--iterations N] [--targets digit-3 letter-A "
     "...] [--device auto|cpu|cuda] [--json PATH]": _SYNOPSIS,
     "taskset -c 0,1 .venv/bin/python benchmarks/bench_end_to_end.py [--target natural] "
-    "[--repeats 1]": _SYNOPSIS,
+    "[--repeats 1] [--cache cold|warm] [--design-args \"--cells 80 80 --pitch-mm 0.25\"]":
+        _SYNOPSIS,
     ".venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A "
     "line-pairs] [--preset near-eye] [--process NAME] [--set KEY=VALUE ...] [--states 32] "
     "[--copies 4] [--rivals 6] [--fit-iterations 20] [--quick] [--json PATH] [--plot DIR]":
