@@ -11,6 +11,7 @@ against focus (nominal position), and views at a few offsets.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,23 +113,37 @@ class EyeQuality:
         }
 
 
-def _views(renderer: Renderer, variant: Variant, targets: np.ndarray, states: EyeStates
-           ) -> np.ndarray:
-    """Views (T, S, C, ny, nx) float64 of a variant for every target and state."""
+def _views(renderer: Renderer, variant: Variant, targets: np.ndarray,
+           batches: Sequence[EyeStates]) -> list[np.ndarray]:
+    """Views (T, S, C, ny, nx) float64 of a variant for every target and the states of each
+    batch. Each target's display stack is built once, and the batches whose states all focus at
+    infinity are rendered in one pass, the others in a second: the kernels share a pair's
+    geometry between states only when every state of a pass focuses at infinity, and a state's
+    view is otherwise the same whatever the other states of its pass (so each batch's views
+    are those it gets alone)."""
     dtype, device = renderer.dtype, renderer.device
-    out = []
+    at_infinity = [bool(np.all(b.focus_diopters == 0)) for b in batches]
+    passes = [[k for k, shared in enumerate(at_infinity) if shared == flag]
+              for flag in (True, False)]
+    out: list[list[np.ndarray]] = [[] for _ in batches]
     with torch.no_grad():
         for t in range(len(targets)):
             display = torch.as_tensor(variant.displays[t], dtype=dtype, device=device)
-            if variant.open_fraction is None:
-                views = render_open_states(renderer.scene, display, states,
-                                           pupil_samples=OPEN_PUPIL_SAMPLES,
-                                           subpixels=OPEN_SUBPIXELS)
-            else:
-                a = torch.as_tensor(variant.open_fraction, dtype=dtype, device=device)
-                views = renderer.render_states(a, renderer.display_stack(display), states)
-            out.append(views.cpu().double().numpy())
-    return np.stack(out)
+            stack = None if variant.open_fraction is None else renderer.display_stack(display)
+            for members in filter(None, passes):
+                states = EyeStates.concat([batches[k] for k in members])
+                if stack is None:
+                    views = render_open_states(renderer.scene, display, states,
+                                               pupil_samples=OPEN_PUPIL_SAMPLES,
+                                               subpixels=OPEN_SUBPIXELS)
+                else:
+                    a = torch.as_tensor(variant.open_fraction, dtype=dtype, device=device)
+                    views = renderer.render_states(a, stack, states)
+                split = np.cumsum([len(batches[k]) for k in members])[:-1]
+                for k, part in zip(members, np.split(views.cpu().double().numpy(), split),
+                                   strict=True):
+                    out[k].append(part)
+    return [np.stack(views) for views in out]
 
 
 def _states(offset_mm: np.ndarray, pupil_mm: np.ndarray | float,
@@ -178,23 +193,27 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
     psnr, ssim, nominal_psnr, map_psnr, pupil_psnr, focus_psnr = {}, {}, {}, {}, {}, {}
     thumbnails = np.zeros(0)
     for index, (name, variant) in enumerate(variants.items()):
-        views = _views(renderer, variant, targets, states)
+        # The map, focus sweep and thumbnails are the part's alone.
+        part = index == 0
+        mapped = part and variant.open_fraction is not None
+        batches = [states, nominal, pupil_states]
+        if part:
+            batches += [focus_states, thumb_states] + ([grid] if mapped else [])
+        views, nominal_views, pupil_views, *more = _views(renderer, variant, targets, batches)
         psnr[name] = gain_psnr_db(views, targets)
         ssim[name] = np.array([[view_metrics(v, targets[t], 1.0)["ssim"] for v in views[t]]
                                for t in range(len(targets))])
-        nominal_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, nominal),
-                                          targets)[:, 0]
-        pupil_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, pupil_states), targets)
-        if index > 0:
-            continue  # the map, focus sweep and thumbnails are the part's alone
-        focus_psnr[name] = gain_psnr_db(_views(renderer, variant, targets, focus_states), targets)
-        if variant.open_fraction is not None:
-            full = np.full((len(targets), map_size * map_size), np.nan)
-            full[:, inside.reshape(-1)] = gain_psnr_db(_views(renderer, variant, targets, grid),
-                                                       targets)
-            map_psnr[name] = full.reshape(len(targets), map_size, map_size)
-        thumbs = _views(renderer, variant, targets, thumb_states)
+        nominal_psnr[name] = gain_psnr_db(nominal_views, targets)[:, 0]
+        pupil_psnr[name] = gain_psnr_db(pupil_views, targets)
+        if not part:
+            continue
+        focus_psnr[name] = gain_psnr_db(more[0], targets)
+        thumbs = more[1]
         thumbnails = np.clip(thumbs * gains(thumbs, targets)[..., None, None, None], 0, 1)
+        if mapped:
+            full = np.full((len(targets), map_size * map_size), np.nan)
+            full[:, inside.reshape(-1)] = gain_psnr_db(more[2], targets)
+            map_psnr[name] = full.reshape(len(targets), map_size, map_size)
     offsets = grid_offsets(distribution, map_size)
     return EyeQuality(distribution, states, psnr, ssim, nominal_psnr, offsets, inside, map_psnr,
                       pupils, pupil_psnr, focus, focus_psnr, thumb_offsets, thumbnails)
