@@ -32,6 +32,9 @@ And the optimizer's own figure for its plate (the PSNR of its loss, the mean ove
 10 iterations: the gain-corrected MSE over eye states and made copies, its mean or, with
 `optimizer.tail_share` below 1, the mean over the worst share) beside the judgement's PSNR of
 the same over the written part's copies x states (`loss_psnr_db`).
+With `optimizer.lattice = "rival"` (the default) a part the best regular array beats is
+designed again on that array's lattice and the part with the larger margin kept, as the design
+job does (both printed; "design s" is then both designs).
 Goals (issue 22): margin >= +4 dB (aim +6) on every target, yield >= 90 %,
 efficiency >= 2 % (aim 3 %), optimizer and judgement within 0.5 dB.
 """
@@ -43,12 +46,13 @@ import json
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from aperture_fab.config.config import resolve
+from aperture_fab.config.config import Config, resolve
 from aperture_fab.config.stages import ValidationSettings
 from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
@@ -56,7 +60,9 @@ from aperture_fab.pipeline.design_job import design
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
+from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
+from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")
 QUICK = {"targets": ["digit-3"], "iterations": 10, "states": 8, "copies": 2,
@@ -79,11 +85,33 @@ def _value(text: str) -> Any:
 
 
 def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The design job's part for one target, judged; with optimizer.lattice = "rival", as the
+    job does, designed again on the best regular array's lattice when that array beats it
+    (`verdicts.RETRY_LATTICE_BELOW_DB`), the part with the larger margin kept (this
+    benchmark's judgement deciding, as the report's does in the job)."""
     overrides = {key: _value(value) for key, value in
                  (item.split("=", 1) for item in args.set)}
     if args.iterations is not None:
         overrides["optimizer.iterations"] = args.iterations
     config = resolve(args.preset, None, overrides)
+    row = _measure_on(name, config, args)
+    plate = config.scene.plate
+    lattice = None if config.optimizer.lattice != "rival" else rival_lattice(
+        {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}, row["made_part"],
+        RETRY_LATTICE_BELOW_DB)
+    if lattice is None:
+        return row
+    other = _measure_on(name, replace(config, scene=lattice_scene(config.scene, lattice[0])),
+                        args)
+    kept = other if other["made_part"]["margin_db"][0] > row["made_part"]["margin_db"][0] \
+        else row
+    lattices = [{"pitch_mm": r["pitch_mm"], "cells": r["cells"], "p10_db": r["p10_db"],
+                 "margin_db": r.get("margin_db"), "kept": r is kept} for r in (row, other)]
+    return {**kept, "lattices": lattices, "design_s": row["design_s"] + other["design_s"]}
+
+
+def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str, Any]:
+    """The part designed on config's own plate, judged."""
     panel_cd_m2 = config.photometry.panel_luminance_cd_m2
     fabrication = config.fabrication.with_flags(process=args.process)
     scene, process = config.scene, fabrication.process
@@ -109,6 +137,7 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     optimizer_db = psnr_db(float(result.design.loss_history[-LOSS_TAIL:].mean()))
     row: dict[str, Any] = {
         "target": name, "process": process.name, "holes": result.part.layout.count,
+        "pitch_mm": list(scene.plate.pitch_mm), "cells": list(scene.plate.cells),
         "p10_db": part["p10_db"][0], "p50_db": part["p50_db"][0], "p90_db": part["p90_db"][0],
         "efficiency": part["efficiency"], "eye_level": part["eye_level"],
         "eye_cd_m2": part["eye_level"] * panel_cd_m2, "panel_cd_m2": panel_cd_m2,
@@ -186,6 +215,10 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
               f"{row['optimizer_db']:.2f} against judged {row['judged_db']:.2f} dB (its loss; "
               f"goal within {GOAL_AGREEMENT_DB:g}); design "
               f"{row['design_s']:.0f} s", flush=True)
+        for tried in row.get("lattices", ()):
+            print(f"  {'kept' if tried['kept'] else 'not kept'}: {tried['cells'][0]} x "
+                  f"{tried['cells'][1]} cells of {tried['pitch_mm'][0]:g} mm, p10 "
+                  f"{tried['p10_db']:.2f} dB, margin {tried['margin_db']:+.2f} dB", flush=True)
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=2))
     if args.plot is not None:

@@ -3,7 +3,7 @@
 TINY is a 4 x 4 mm display of 32 x 32 pixels behind a 16 x 16 plate of 0.25 mm cells, seen on a
 16 x 16 view, on the CPU, for a handful of iterations, without the preset's light floor, from
 the nominal eye point (preset near-eye-nominal; tiny_config("near-eye") samples the eye
-distribution). Its overrides use the
+distribution), its plate kept (optimizer.lattice = "fixed"). Its overrides use the
 dotted keys of `aperture_fab.config.config.resolve`; TINY_TOML is the same as a config file for the
 CLI. Modules that run the optimizer use `pytestmark = pytest.mark.usefixtures("one_torch_thread")`.
 """
@@ -42,6 +42,9 @@ TINY: dict[str, Any] = {
     "optimizer.device": "cpu",
     # The plain image loss: the preset's light floor has its own tests (test_brightness_floor).
     "optimizer.min_efficiency": 0.0,
+    # The plate as given: a regular array beats a tiny part, and the design job would design
+    # again on its lattice (tested in test_made_part).
+    "optimizer.lattice": "fixed",
 }
 
 TINY_TOML = f"""\
@@ -63,6 +66,7 @@ view_pixels = [16, 16]
 iterations = {TINY_ITERATIONS}
 device = "cpu"
 min_efficiency = 0.0
+lattice = "fixed"
 """
 
 

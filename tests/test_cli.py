@@ -326,3 +326,23 @@ def test_the_module_runs_as_a_program(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert re.search(r"usage: aperture-fab design", done.stdout)
     assert "--resume" in done.stdout
+
+
+@pytest.mark.slow
+def test_a_part_a_regular_array_beats_is_designed_again_on_its_lattice(
+        tmp_path: Path, marker_png: Path, tiny_toml: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """--lattice rival: the tiny part loses to a regular array on a coarser lattice, so the job
+    designs on that lattice too, keeps the part with the larger margin and says so."""
+    out = tmp_path / "out"
+    main(design_args(marker_png, tiny_toml, out, "--lattice", "rival", quiet=False))
+    said = capsys.readouterr()
+    assert "designing again on its lattice" in said.out + said.err
+    first, second = json.loads((out / "design.json").read_text())["lattices"]
+    assert first["cells"] == [16, 16] and first["margin_db"][0] < 0
+    assert second["pitch_mm"][0] > first["pitch_mm"][0]
+    assert first["kept"] != second["kept"]
+    kept = first if first["kept"] else second
+    assert written_config(out)["plate"]["cells"] == kept["cells"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"]["plate"]["cells"] == kept["cells"]

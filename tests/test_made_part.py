@@ -37,7 +37,13 @@ from aperture_fab.validation.regular import (
     rivals_at,
 )
 from aperture_fab.validation.validate import layout_fractions
-from aperture_fab.validation.verdicts import LATTICE_FIX_BELOW_DB, MADE_MARGIN_DB, made_verdict
+from aperture_fab.validation.verdicts import (
+    LATTICE_FIX_BELOW_DB,
+    MADE_MARGIN_DB,
+    RETRY_LATTICE_BELOW_DB,
+    made_verdict,
+    rival_lattice,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -281,7 +287,8 @@ def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch
     found = block(margin)
     found["regular"]["best"]["pitch_mm"] = rival_pitch_mm
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
-                             config={"optimizer": {}}, fabrication={"process": "photomask"})
+                             config={"optimizer": {}}, fabrication={"process": "photomask"},
+                             checked_part=None)
     fixes = made_verdict(found, report).fixes
     named = [fix for fix in fixes if "best regular array's lattice" in fix]
     if flags is None:
@@ -289,3 +296,63 @@ def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch
     else:
         assert len(named) == 1 and flags in named[0]
     assert not any("more iterations" in fix for fix in fixes)
+
+
+@pytest.mark.parametrize(("lattice", "checked_part", "margin", "named"), [
+    ("rival", None, RETRY_LATTICE_BELOW_DB - 0.5, False),  # the design job tried it
+    ("rival", None, RETRY_LATTICE_BELOW_DB + 0.5, True),  # it did not: the part won
+    ("rival", {"path": "plate.stl"}, RETRY_LATTICE_BELOW_DB - 0.5, True),  # validate's report
+    ("fixed", None, RETRY_LATTICE_BELOW_DB - 0.5, True)])
+def test_the_lattice_fix_is_left_out_where_the_design_job_tried_it(lattice, checked_part,
+                                                                    margin, named):
+    found = block(margin)
+    found["regular"]["best"]["pitch_mm"] = 2.5
+    report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
+                             config={"optimizer": {"lattice": lattice}},
+                             fabrication={"process": "photomask"}, checked_part=checked_part)
+    fixes = made_verdict(found, report).fixes
+    assert any("best regular array's lattice" in fix for fix in fixes) == named
+
+
+@pytest.mark.parametrize(("pitch", "margin", "cells"), [
+    (2.5, -0.1, (8, 8)), (3.0, -2.0, (6, 6)), (2.5, 0.0, None), (0.5, -1.0, None)])
+def test_rival_lattice_is_the_rivals_pitch_over_the_plate(pitch, margin, cells):
+    found = block(margin)
+    found["regular"]["best"]["pitch_mm"] = pitch
+    plate = {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}
+    lattice = rival_lattice(plate, found, RETRY_LATTICE_BELOW_DB)
+    assert lattice == (None if cells is None else (pitch, cells))
+
+
+@pytest.mark.parametrize(("lattice", "first_margin", "second_margin", "kept_second"), [
+    ("rival", -0.3, 0.7, True), ("rival", -0.3, -0.5, False), ("rival", 0.4, None, False),
+    ("fixed", -0.3, None, False)])
+def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
+        monkeypatch, lattice, first_margin, second_margin, kept_second):
+    """optimizer.lattice = "rival": a part that loses to the best regular array is designed
+    again on its lattice, and the one with the larger margin kept (both in `lattices`)."""
+    from aperture_fab.pipeline import design_job
+
+    calls = []
+
+    def design_on(images, config, **_):
+        calls.append(config)
+        found = block(first_margin if len(calls) == 1 else second_margin)
+        found["regular"]["best"]["pitch_mm"] = 2.5
+        plate = config.scene.plate
+        report = SimpleNamespace(made_part=found, scene={"plate": {
+            "pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
+        return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report)
+
+    monkeypatch.setattr(design_job, "_design_on", design_on)
+    config = resolve("near-eye", None, {"optimizer.lattice": lattice})
+    result = design_job.design([np.zeros((3, 4, 4))], config)
+    if second_margin is None:
+        assert len(calls) == 1 and result.config is calls[0] and result.lattices == ()
+        return
+    assert [c.scene.plate.pitch_mm for c in calls] == [(0.5, 0.5), (2.5, 2.5)]
+    assert calls[1].scene.plate.cells == (8, 8)
+    assert result.config is calls[1 if kept_second else 0]
+    assert [entry["kept"] for entry in result.lattices] == [not kept_second, kept_second]
+    assert [entry["margin_db"] for entry in result.lattices] == [[first_margin],
+                                                                  [second_margin]]

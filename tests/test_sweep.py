@@ -26,6 +26,7 @@ from aperture_fab.sweep.results import (
     write_results,
 )
 from aperture_fab.sweep.run import POINT_FILE, RunOptions, load_record, run_sweep
+from aperture_fab.sweep.settings import resolve_point
 from aperture_fab.sweep.spec import (
     Choice,
     FloatRange,
@@ -529,3 +530,14 @@ def test_real_sweep_gathers_files(sweep_dir: Path) -> None:
     assert outcome.records[point.id]["status"] == "ok"
     assert {"report.html", "report.json", "plate.stl", POINT_FILE} <= \
         {p.name for p in (out / "points" / point.id).iterdir()}
+
+
+@pytest.mark.parametrize(("base_file", "overrides", "lattice"), [
+    (None, {}, "fixed"), (None, {"optimizer.lattice": "rival"}, "rival"),
+    ({"optimizer": {"lattice": "rival"}}, {}, "rival")])
+def test_a_point_keeps_its_plate_unless_the_sweep_sets_the_lattice(base_file, overrides,
+                                                                    lattice):
+    """A sweep over the plate compares the plates it asked for: the design job's redesign on a
+    regular array's lattice (optimizer.lattice = "rival", the preset's) is off unless set."""
+    config, _, _ = resolve_point("near-eye", base_file, overrides)
+    assert config.optimizer.lattice == lattice

@@ -18,7 +18,8 @@ in a file; what it leaves out comes from the preset.
                 focus_range_diopters = "nominal" | [lo, hi], gaze_deg, rotation_mm
     [optimizer] method, learning_rate, momentum, iterations, schedule, init, display,
                 efficiency_weight, plateau_patience, plateau_tolerance, seed, precision,
-                device, checkpoint_every, quantize_share, eye_states, tail_share, tracking
+                device, checkpoint_every, quantize_share, eye_states, tail_share, tracking,
+                lattice
 
 The eye distribution ([eye] eyebox_mm to rotation_mm, see aperture_fab.optics.eyes) spreads the eye
 around its nominal state (pupil_mm, focus_mm, the first position); "nominal" ranges are that
@@ -49,6 +50,7 @@ from aperture_fab.config.presets import DEFAULT_PRESET, PRESETS
 from aperture_fab.config.settings import (
     DISPLAY_MODES,
     INITS,
+    LATTICES,
     METHODS,
     PRECISIONS,
     SCHEDULES,
@@ -89,7 +91,7 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
                   "plateau_patience",
                   "plateau_tolerance", "seed",
                   "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
-                  "tail_share", "tracking"),
+                  "tail_share", "tracking", "lattice"),
 }
 
 INFINITY = "infinity"
@@ -120,6 +122,7 @@ _TEXTS: dict[str, tuple[str, ...] | None] = {
     "plate.hole_axis": HOLE_AXES,
     "eye.eyebox_shape": EYEBOX_SHAPES,
     "optimizer.tracking": TRACKINGS,
+    "optimizer.lattice": LATTICES,
     "optimizer.method": METHODS,
     "optimizer.schedule": SCHEDULES,
     "optimizer.init": INITS,

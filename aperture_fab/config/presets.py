@@ -153,6 +153,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             # the part's light on three of the four targets, the same on the photo (README)
             "tail_share": 0.5,
             "tracking": "untracked",
+            # A part a plain array beats is designed again on that array's lattice (README)
+            "lattice": "rival",
         },
         "process": {"name": DEFAULT_PROCESS},
     },
@@ -202,6 +204,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "eye_states": 1,
             "tail_share": 1.0,
             "tracking": "untracked",
+            "lattice": "fixed",  # the dissertation's plate
         },
     },
 }

@@ -8,7 +8,7 @@ from typing import Literal
 
 from aperture_fab.optics.scene import check_positive
 
-__all__ = ["Method", "Schedule", "Init", "DisplayMode", "Precision", "Tracking",
+__all__ = ["Method", "Schedule", "Init", "DisplayMode", "Precision", "Tracking", "Lattice",
            "OptimizerSettings"]
 
 Method = Literal["adam", "sgd"]
@@ -17,6 +17,7 @@ Init = Literal["pinholes", "random", "uniform"]
 DisplayMode = Literal["optimized", "target"]
 Precision = Literal["float32", "float64"]
 Tracking = Literal["untracked", "tracked"]
+Lattice = Literal["fixed", "rival"]
 
 METHODS: tuple[Method, ...] = ("adam", "sgd")
 SCHEDULES: tuple[Schedule, ...] = ("constant", "cosine")
@@ -24,6 +25,7 @@ INITS: tuple[Init, ...] = ("pinholes", "random", "uniform")
 DISPLAY_MODES: tuple[DisplayMode, ...] = ("optimized", "target")
 PRECISIONS: tuple[Precision, ...] = ("float32", "float64")
 TRACKINGS: tuple[Tracking, ...] = ("untracked", "tracked")
+LATTICES: tuple[Lattice, ...] = ("fixed", "rival")
 
 MAX_ITERATIONS = 1_000_000
 #: Most eye states drawn per iteration: each is a full render of every target.
@@ -77,6 +79,12 @@ class OptimizerSettings:
     tracking: "untracked" (one display content for every eye state: the device does not know
         where the eye is) or "tracked" (display content solved per eye state, as with an eye
         tracker).
+    lattice: "rival" (default): when the part as made loses to the best regular pinhole array
+        (`aperture_fab.validation.made_part`) and that array's pitch is coarser than the
+        plate's cells, the design job designs again on the array's lattice (plate.pitch_mm and
+        plate.cells of that pitch) and keeps the part with the larger margin over its best
+        regular array (`aperture_fab.pipeline.design_job`); "fixed": plate.cells only. Needs
+        the part judged as made (a process and validation.made_copies > 0).
     """
 
     method: Method = "adam"
@@ -99,6 +107,7 @@ class OptimizerSettings:
     eye_states: int = 16
     tail_share: float = 1.0
     tracking: Tracking = "untracked"
+    lattice: Lattice = "rival"
 
     def __post_init__(self) -> None:
         _check_choice("optimizer.method", self.method, METHODS)
@@ -107,6 +116,7 @@ class OptimizerSettings:
         _check_choice("optimizer.display", self.display, DISPLAY_MODES)
         _check_choice("optimizer.precision", self.precision, PRECISIONS)
         _check_choice("optimizer.tracking", self.tracking, TRACKINGS)
+        _check_choice("optimizer.lattice", self.lattice, LATTICES)
         if self.tracking == "tracked" and self.display == "target":
             raise ValueError(
                 'optimizer.tracking = "tracked" solves the display content per eye state, but '

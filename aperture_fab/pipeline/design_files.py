@@ -160,6 +160,7 @@ def summary_json(result: DesignResult) -> bytes:
         "bounds": list(d.bounds),
         "metrics": result.metrics,
         "fabrication": None if result.part is None else _part_summary(result.part),
+        **({"lattices": list(result.lattices)} if result.lattices else {}),
         "config": to_dict(result.config),
     }
     return json.dumps(summary, indent=2).encode()

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -58,8 +60,10 @@ from aperture_fab.pipeline.design_files import (
     summary_json,
 )
 from aperture_fab.pipeline.saved import validations_of
+from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.report import Report, Verdict, eye_headline
 from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
+from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
 
 if TYPE_CHECKING:
     from aperture_fab.report.evidence import Evidence
@@ -102,6 +106,10 @@ class DesignResult:
         otherwise.
     report_files: that report's files, name -> bytes (report.json, report.html, views.npz;
         empty when not judged).
+    lattices: when the job designed on two lattices (optimizer.lattice = "rival", `design`),
+        each one's plate and part as made: {"pitch_mm", "cells", "p10_db", "margin_db" (per
+        target, over its own best regular array), "kept" (the part this result holds)}, the
+        config's own lattice first; empty when it designed on one.
     """
 
     config: Config
@@ -116,6 +124,7 @@ class DesignResult:
     part_files: dict[str, bytes] = field(default_factory=dict)
     report: Report | None = None
     report_files: dict[str, bytes] = field(default_factory=dict)
+    lattices: tuple[dict[str, Any], ...] = ()
 
     @property
     def verdicts(self) -> tuple[Verdict, ...]:
@@ -142,7 +151,76 @@ def design(
     (`formats`; default every format, STEP only with fabrication.step) and, with `validation`,
     judged as written (the STL's bytes parsed again): the report's values and files. Nothing
     is written; `run_design` writes the result. command: what the report says ran it.
-    stage: told each stage after the optimizer as it starts, in words."""
+    stage: told each stage after the optimizer as it starts, in words.
+
+    With optimizer.lattice = "rival" (the default), a part as made that loses to the best
+    regular pinhole array of a coarser pitch is designed again on that array's lattice, and the
+    part with the larger margin over its own best regular array is kept (`lattices` says
+    both). The second design is not checkpointed: interrupted, the job stops and --resume
+    starts again from the first design's checkpoint."""
+    names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
+    design_on = functools.partial(_design_on, images, names=names, fabrication=fabrication,
+                                  validation=validation, formats=formats, command=command,
+                                  progress=progress, stage=stage)
+    first = design_on(config, state=state, on_checkpoint=on_checkpoint)
+    report = first.report
+    lattice = None
+    if config.optimizer.lattice == "rival" and report is not None and report.made_part:
+        lattice = rival_lattice(report.scene["plate"], report.made_part, RETRY_LATTICE_BELOW_DB)
+    if lattice is None:
+        return first
+    pitch, (nx, ny) = lattice
+    if stage is not None:
+        stage(f"design: the part as made loses to a regular array of {pitch:g} mm pitch "
+              f"({_margin(first):+.1f} dB); designing again on its lattice ({nx} x {ny} cells)")
+    try:
+        moved = dataclasses.replace(config, scene=lattice_scene(config.scene, pitch))
+        second = design_on(moved)
+    except Interrupted:
+        raise KeyboardInterrupt from None  # the first design's checkpoint stays for --resume
+    return _better(first, second)
+
+
+def _margin(result: DesignResult) -> float:
+    """The part's smallest margin over its best regular array (dB): -inf when the part as made
+    was not judged, +inf when no regular array is as bright at the eye."""
+    block = None if result.report is None else result.report.made_part
+    if not block:
+        return -math.inf
+    return math.inf if block["margin_db"] is None else float(min(block["margin_db"]))
+
+
+def _better(first: DesignResult, second: DesignResult) -> DesignResult:
+    """Of two designs on different lattices, the one whose part as made beats its own best
+    regular array by more (the first on a tie), with both in `lattices`."""
+    kept = second if _margin(second) > _margin(first) else first
+
+    def record(result: DesignResult) -> dict[str, Any]:
+        plate = result.config.scene.plate
+        block = None if result.report is None else result.report.made_part
+        return {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells),
+                "p10_db": None if not block else list(block["part"]["p10_db"]),
+                "margin_db": None if not block else block["margin_db"],
+                "kept": result is kept}
+
+    return dataclasses.replace(kept, lattices=(record(first), record(second)))
+
+
+def _design_on(
+    images: Sequence[np.ndarray],
+    config: Config,
+    *,
+    names: Sequence[str] | None = None,
+    fabrication: FabricationSettings | None = None,
+    validation: ValidationSettings | None = None,
+    formats: Sequence[FormatName] | None = None,
+    command: Sequence[str] | None = None,
+    state: dict[str, Any] | None = None,
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    progress: bool = False,
+    stage: Callable[[str], None] | None = None,
+) -> DesignResult:
+    """`design` on the config's own plate."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
     if validation is not None and formats is not None and "stl" not in formats:

@@ -25,8 +25,14 @@ def require(module: str) -> Any:
 
 def resolve_point(preset: str | None, base_file: Mapping[str, Any] | None,
                   overrides: Mapping[str, Any]) -> tuple[Any, Any, Any]:
-    """(Config, FabricationSettings, ValidationSettings) of a point; raises what resolve does."""
+    """(Config, FabricationSettings, ValidationSettings) of a point; raises what resolve does.
+    A point designs on its own plate (optimizer.lattice = "fixed") unless the sweep sets
+    optimizer.lattice: the design job would otherwise design a losing part again on another
+    lattice, and a sweep over the plate would compare parts it did not ask for."""
     from aperture_fab.config import resolve
 
+    if "optimizer.lattice" not in overrides and "lattice" not in dict(
+            (base_file or {}).get("optimizer", {})):
+        overrides = {**overrides, "optimizer.lattice": "fixed"}
     config = resolve(preset, base_file, overrides, file_source="the [sweep] config file")
     return config, config.fabrication, config.validation
