@@ -110,8 +110,10 @@ class KernelView(torch.autograd.Function):
         out_radius = torch.from_numpy(grad_radius.sum(0)).to(ctx.dtype)
         out_stack = None
         if want_stack:
-            out_stack = torch.from_numpy(grad_stack.sum(0)).permute(3, 0, 1, 2)[None]
-            out_stack = out_stack.to(ctx.dtype).contiguous()
+            for b in range(1, blocks):  # in place: no second stack-sized buffer
+                grad_stack[0] += grad_stack[b]
+            # Channels last, the stack's own layout (Renderer.display_stack): no copy.
+            out_stack = torch.from_numpy(grad_stack[0]).permute(3, 0, 1, 2)[None].to(ctx.dtype)
         return out_radius, out_stack, None, None
 
 

@@ -421,8 +421,8 @@ class Renderer:
         # (torch.channels_last_3d), the layout the fused kernels read, so that a render does
         # not copy the stack into it.
         levels = torch.stack([torch.fft.irfft2(spectrum * kernel[:, level], s=self._fft_shape)
-                              [:, rows, cols] for level in range(kernel.shape[1])], 1)
-        return levels.unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)
+                              [:, rows, cols].permute(1, 2, 0) for level in range(kernel.shape[1])])
+        return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory: one copy
 
     def white_stack(self) -> torch.Tensor:
         """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a
