@@ -31,6 +31,8 @@ import math
 import numpy as np
 from numba import get_num_threads, njit, prange
 
+from aperture_fab.kernel_sources import check_inlined
+from aperture_fab.optics import kernel_pair
 from aperture_fab.optics.kernel_pair import (
     CACHE_FIELDS,
     EMISSION,
@@ -44,6 +46,11 @@ from aperture_fab.optics.kernel_pair import (
     sample_stack,
     scatter_stack,
 )
+
+#: kernel_pair.py's digest: these kernels inline its functions, and Numba's cache does not see
+#: a change there (`aperture_fab.kernel_sources`).
+INLINED_DIGEST = "c416355033264358"
+check_inlined(__name__, INLINED_DIGEST, kernel_pair)
 
 __all__ = [
     "GEOMETRY_FIELDS",

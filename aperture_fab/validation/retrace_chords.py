@@ -8,8 +8,15 @@ import math
 import numpy as np
 from numba import prange
 
+from aperture_fab.kernel_sources import check_inlined
+from aperture_fab.validation import retrace_kernels, retrace_sampling
 from aperture_fab.validation.retrace_kernels import PAIR_BLOCK, PAIR_FIELDS, shade_ray
 from aperture_fab.validation.retrace_sampling import cap_theta, inline_jit, parallel_jit
+
+#: The digest of retrace_kernels.py and retrace_sampling.py: this kernel inlines their
+#: functions, and Numba's cache does not see a change there (`aperture_fab.kernel_sources`).
+INLINED_DIGEST = "1d078ded6f5b5a47"
+check_inlined(__name__, INLINED_DIGEST, retrace_kernels, retrace_sampling)
 
 #: Random numbers per chord (chord sampling): its height in its stratum (1), the point of the
 #: chord drawn where the chord is not integrated (1), its view direction in the box (2).

@@ -8,6 +8,8 @@ import math
 import numpy as np
 from numba import prange
 
+from aperture_fab.kernel_sources import check_inlined
+from aperture_fab.validation import retrace_sampling
 from aperture_fab.validation.retrace_sampling import (
     fast_jit,
     inline_jit,
@@ -15,6 +17,11 @@ from aperture_fab.validation.retrace_sampling import (
     lens_setup,
     parallel_jit,
 )
+
+#: retrace_sampling.py's digest: these kernels inline its functions, and Numba's cache does not
+#: see a change there (`aperture_fab.kernel_sources`).
+INLINED_DIGEST = "eb907acde1380ec8"
+check_inlined(__name__, INLINED_DIGEST, retrace_sampling)
 
 #: Random numbers per sample: view box (2), pupil or lens square (2), permutation key (1).
 #: Drawn as one array per chunk in a fixed order, so the result does not depend on chunk size.

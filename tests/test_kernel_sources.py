@@ -1,0 +1,80 @@
+"""Numba's cache and the modules a kernel inlines (aperture_fab.kernel_sources)."""
+
+from __future__ import annotations
+
+import ast
+import functools
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+import aperture_fab
+from aperture_fab.kernel_sources import check_inlined, sources_digest
+
+PACKAGE = Path(aperture_fab.__file__).parent
+
+
+def load(path: Path) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_an_edited_inlined_module_fails_the_import_and_names_the_digest(tmp_path: Path) -> None:
+    path = tmp_path / "helpers.py"
+    path.write_text("SCALE = 1.0\n")
+    helpers = load(path)
+    recorded = sources_digest(helpers)
+    assert recorded is not None
+    check_inlined("kernels", recorded, helpers)  # unchanged: nothing to say
+    path.write_text("SCALE = 2.0\n")
+    with pytest.raises(RuntimeError, match="whose source changed") as info:
+        check_inlined("kernels", recorded, helpers)
+    assert f'INLINED_DIGEST = "{sources_digest(helpers)}" in kernels' in str(info.value)
+
+
+def test_line_endings_do_not_change_the_digest(tmp_path: Path) -> None:
+    unix, windows = tmp_path / "unix.py", tmp_path / "windows.py"
+    unix.write_bytes(b"A = 1\nB = 2\n")
+    windows.write_bytes(b"A = 1\r\nB = 2\r\n")
+    assert sources_digest(load(unix)) == sources_digest(load(windows))
+
+
+def test_a_module_without_its_source_is_not_checked() -> None:
+    compiled = ModuleType("compiled")
+    compiled.__file__ = "compiled.cpython-311.pyc"
+    assert sources_digest(compiled) is None
+    check_inlined("kernels", "0" * 16, compiled)
+
+
+def _compiles(tree: ast.Module) -> bool:
+    """Whether a module defines Numba functions (a decorator named ...jit or _parallel)."""
+    names = {d.id if isinstance(d, ast.Name) else getattr(d, "attr", "")
+             for node in ast.walk(tree) if isinstance(node, ast.FunctionDef)
+             for d in node.decorator_list}
+    return any(name.endswith("jit") or name == "_parallel" for name in names)
+
+
+@functools.cache
+def _jit_modules() -> frozenset[str]:
+    """The package's modules that make Numba functions (they call njit or define them)."""
+    return frozenset(".".join(p.relative_to(PACKAGE.parent).with_suffix("").parts)
+                     for p in PACKAGE.rglob("*.py")
+                     if "njit(" in p.read_text() or _compiles(ast.parse(p.read_text())))
+
+
+@pytest.mark.parametrize("path", sorted(PACKAGE.rglob("*.py")), ids=lambda p: p.name)
+def test_every_kernel_that_inlines_another_module_records_its_digest(path: Path) -> None:
+    """A module whose own Numba functions call functions of another of the package's Numba
+    modules compiles them in, so it must record their digest."""
+    tree = ast.parse(path.read_text())
+    inlined = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+               and node.module in _jit_modules()}
+    if _compiles(tree) and inlined:
+        assert "INLINED_DIGEST" in path.read_text(), (
+            f"{path.name} imports Numba functions from {sorted(inlined)}: record their digest "
+            "(aperture_fab.kernel_sources.check_inlined)")
