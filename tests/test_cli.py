@@ -346,3 +346,5 @@ def test_a_part_a_regular_array_beats_is_designed_again_on_its_lattice(
     assert written_config(out)["plate"]["cells"] == kept["cells"]
     report = json.loads((out / "report.json").read_text())
     assert report["scene"]["plate"]["cells"] == kept["cells"]
+    # A part made on the rival's lattice says which part it replaces.
+    assert ("replaces" in report["run"]) == second["kept"]

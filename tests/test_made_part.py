@@ -288,7 +288,7 @@ def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch
     found["regular"]["best"]["pitch_mm"] = rival_pitch_mm
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {}}, fabrication={"process": "photomask"},
-                             checked_part=None)
+                             checked_part=None, run=None)
     fixes = made_verdict(found, report).fixes
     named = [fix for fix in fixes if "best regular array's lattice" in fix]
     if flags is None:
@@ -309,7 +309,8 @@ def test_the_lattice_fix_is_left_out_where_the_design_job_tried_it(lattice, chec
     found["regular"]["best"]["pitch_mm"] = 2.5
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {"lattice": lattice}},
-                             fabrication={"process": "photomask"}, checked_part=checked_part)
+                             fabrication={"process": "photomask"}, checked_part=checked_part,
+                             run=None)
     fixes = made_verdict(found, report).fixes
     assert any("best regular array's lattice" in fix for fix in fixes) == named
 
@@ -335,8 +336,11 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
 
     calls = []
 
-    def design_on(images, config, **_):
+    replaced = []
+
+    def design_on(images, config, replaces=None, **_):
         calls.append(config)
+        replaced.append(replaces)
         found = block(first_margin if len(calls) == 1 else second_margin)
         found["regular"]["best"]["pitch_mm"] = 2.5
         plate = config.scene.plate
@@ -352,7 +356,23 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
         return
     assert [c.scene.plate.pitch_mm for c in calls] == [(0.5, 0.5), (2.5, 2.5)]
     assert calls[1].scene.plate.cells == (8, 8)
+    assert replaced == [None, {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
+                               "margin_db": [first_margin]}]
     assert result.config is calls[1 if kept_second else 0]
     assert [entry["kept"] for entry in result.lattices] == [not kept_second, kept_second]
     assert [entry["margin_db"] for entry in result.lattices] == [[first_margin],
                                                                   [second_margin]]
+
+
+def test_a_part_made_on_its_rivals_lattice_says_what_it_replaces():
+    found = block(0.7)
+    report = SimpleNamespace(scene={"plate": {"pitch_mm": [2.5, 2.5], "cells": [8, 8]}},
+                             config={"optimizer": {"lattice": "rival"}},
+                             fabrication={"process": "photomask"}, checked_part=None,
+                             run={"replaces": {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
+                                               "margin_db": [-0.3]}})
+    text = made_verdict(found, report).text
+    assert text.startswith("The design job made this part on the lattice of the regular array "
+                           "that beat its part on 40 x 40 cells of 0.5 mm (-0.3 dB")
+    plain = SimpleNamespace(**{**vars(report), "run": {"part": "plate.stl"}})
+    assert made_verdict(found, plain).text.startswith("As made")

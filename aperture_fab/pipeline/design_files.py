@@ -7,7 +7,7 @@ from __future__ import annotations
 import io
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,11 +34,11 @@ __all__ = ["design_outputs", "evidence_files", "judge_written", "part_bytes", "p
 
 
 def judge_written(result: DesignResult, fabrication: FabricationSettings,
-                  settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None
-                  ) -> tuple[Validation, Evidence]:
+                  settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None,
+                  replaces: Mapping[str, Any] | None = None) -> tuple[Validation, Evidence]:
     """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again), judge
     it and draw its report (views.npz, report.html): values, nothing written
-    (`evidence_files` gives their bytes)."""
+    (`evidence_files` gives their bytes). replaces: the report's run.replaces (`judge`)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.report.evidence import assemble
 
@@ -55,7 +55,7 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
     shown = result.design.displays if result.built_displays is None else result.built_displays
     report = judge(result.config, result.names, result.targets, shown, result.part,
                    fabrication.process, checked, result.timings_s, part_file="plate.stl",
-                   command=command)
+                   command=command, replaces=replaces)
     evidence = assemble(report, result.names, result.targets, shown,
                         result.design.loss_history, result.part, checked)
     timed = evidence.report.with_timing("report_s", time.perf_counter() - start)

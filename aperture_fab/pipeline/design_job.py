@@ -163,11 +163,13 @@ def design(
                                   validation=validation, formats=formats, command=command,
                                   progress=progress, stage=stage)
     first = design_on(config, state=state, on_checkpoint=on_checkpoint)
-    report = first.report
+    plate = config.scene.plate
+    given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}
+    block = None if first.report is None else first.report.made_part
     lattice = None
-    if config.optimizer.lattice == "rival" and report is not None and report.made_part:
-        lattice = rival_lattice(report.scene["plate"], report.made_part, RETRY_LATTICE_BELOW_DB)
-    if lattice is None:
+    if config.optimizer.lattice == "rival" and block:
+        lattice = rival_lattice(given, block, RETRY_LATTICE_BELOW_DB)
+    if lattice is None or not block:
         return first
     pitch, (nx, ny) = lattice
     if stage is not None:
@@ -175,7 +177,7 @@ def design(
               f"({_margin(first):+.1f} dB); designing again on its lattice ({nx} x {ny} cells)")
     try:
         moved = dataclasses.replace(config, scene=lattice_scene(config.scene, pitch))
-        second = design_on(moved)
+        second = design_on(moved, replaces={**given, "margin_db": block["margin_db"]})
     except Interrupted:
         raise KeyboardInterrupt from None  # the first design's checkpoint stays for --resume
     return _better(first, second)
@@ -219,8 +221,10 @@ def _design_on(
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = False,
     stage: Callable[[str], None] | None = None,
+    replaces: dict[str, Any] | None = None,
 ) -> DesignResult:
-    """`design` on the config's own plate."""
+    """`design` on the config's own plate; replaces: the part on the given cells this one
+    replaces, for its report (`aperture_fab.validation.judge.run_block`)."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
     if validation is not None and formats is not None and "stl" not in formats:
@@ -287,7 +291,7 @@ def _design_on(
     announce("design: validating the part as written (eye distribution, mesh re-trace, "
              "tolerances)")
     checked, evidence = judge_written(made_part, fabrication, validation, files["plate.stl"],
-                                      command)
+                                      command, replaces)
     return _with_judgement(made_part, checked, evidence)
 
 

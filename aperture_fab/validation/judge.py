@@ -51,13 +51,17 @@ def _versions() -> dict[str, str]:
 
 
 def run_block(part_file: str, process: str, command: Sequence[str] | str | None,
-              date: str | None = None) -> dict[str, Any]:
+              date: str | None = None, replaces: Mapping[str, Any] | None = None
+              ) -> dict[str, Any]:
     """report.json's "run" block: the part's file name, the process, the date (ISO 8601 UTC,
-    now unless given) and the command line (None: called from Python)."""
+    now unless given), the command line (None: called from Python) and, for a part the design
+    job made on a regular array's lattice instead of the config's own cells, `replaces`: that
+    first part's plate and margins ({"pitch_mm", "cells", "margin_db"})."""
     when = date if date is not None else datetime.datetime.now(datetime.UTC).isoformat(
         timespec="seconds").replace("+00:00", "Z")
     line = command if command is None or isinstance(command, str) else shlex.join(command)
-    return {"part": part_file, "process": process, "date": when, "command": line}
+    block = {"part": part_file, "process": process, "date": when, "command": line}
+    return block if replaces is None else {**block, "replaces": dict(replaces)}
 
 
 def light_block(settings: PhotometrySettings, optimizer: OptimizerSettings, eye: Eye,
@@ -137,12 +141,14 @@ def _tolerance_block(tolerance: Mapping[str, Any] | None) -> dict[str, Any] | No
 def judge(config: Config, names: tuple[str, ...], targets: np.ndarray, displays: np.ndarray,
           part: Part, process: Process, validation: Validation,
           timings_s: Mapping[str, float], *, part_file: str = "plate.stl",
-          command: Sequence[str] | str | None = None, date: str | None = None) -> Report:
+          command: Sequence[str] | str | None = None, date: str | None = None,
+          replaces: Mapping[str, Any] | None = None) -> Report:
     """The report of a validated part, its verdicts included.
 
     targets: (T, C, ny, nx) linear, on the view grid; displays: (T, C, H, W) the content shown.
     part_file, command, date: the header's part (file name), the command line (None: called
-    from Python) and the date (ISO 8601 UTC; None: now)."""
+    from Python) and the date (ISO 8601 UTC; None: now). replaces: the part on the config's
+    own cells this one replaces (`run_block`), or None."""
     stats = layout_stats(part.layout)
     mesh = {"watertight": part.report.watertight, "genus": part.report.genus,
             "volume_mm3": part.report.volume_mm3, "triangles": part.report.face_count}
@@ -155,7 +161,7 @@ def judge(config: Config, names: tuple[str, ...], targets: np.ndarray, displays:
                           versions=_versions(),
                           eye_distribution=None if eyes is None else eye_distribution_block(
                               eyes, names, targets),
-                          run=run_block(part_file, process.name, command, date),
+                          run=run_block(part_file, process.name, command, date, replaces),
                           photometry=light_block(config.photometry, config.optimizer,
                                                  config.scene.eye, validation, displays,
                                                  process, float(stats["open_area_fraction"])),

@@ -10,7 +10,10 @@ by `report_json`):
 
     schema_version  3
     run             (optional) {"part": the part's file name, "process", "date" (ISO 8601 UTC),
-                    "command": the command line, or null when called from Python}
+                    "command": the command line, or null when called from Python; and
+                    "replaces" when the design job made this part on the best regular array's
+                    lattice because its part on the config's own cells lost to that array:
+                    {"pitch_mm", "cells", "margin_db"} of that part}
     photometry      (optional) the light budget of the part as built, or null when its light
                     efficiency was not computed; see PHOTOMETRY below
     eye_distribution  the headline: the part and the baselines judged over the eye distribution

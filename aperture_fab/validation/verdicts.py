@@ -304,11 +304,19 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
     process, config.optimizer) is not proposed; None proposes them all."""
     part, best = block["part"], block["regular"]["best"]
     p10 = min(part["p10_db"])
+    replaced = None if report is None or report.run is None else report.run.get("replaces")
     where = (f"As made ({block['copies']} made copies x {block['states']} eye states, "
              f"diffraction and the material's veil included), the part's 10th percentile is "
              f"{p10:.1f} dB at {100 * part['efficiency']:.2g} % light ("
              f"{100 * part['eye_level']:.2g} % of the panel's white at the eye with its "
              "content)")
+    if replaced is not None:
+        nx, ny = replaced["cells"]
+        first = replaced["margin_db"]
+        where = (f"The design job made this part on the lattice of the regular array that beat "
+                 f"its part on {nx} x {ny} cells of {replaced['pitch_mm'][0]:g} mm ("
+                 + ("no margin" if first is None else f"{min(first):+.1f} dB")
+                 + "; optimizer.lattice = \"rival\"). " + where)
     if best is None:
         return Verdict(MADE_TOPIC, "info", where + "; no regular array the process makes is "
                        "that bright, so none is compared.")
