@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -59,6 +58,7 @@ from aperture_fab.pipeline.design_files import (
     part_formats,
     summary_json,
 )
+from aperture_fab.pipeline.lattices import better_part, margin_db
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.report import Report, Verdict, eye_headline
@@ -171,41 +171,18 @@ def design(
         lattice = rival_lattice(given, block, RETRY_LATTICE_BELOW_DB)
     if lattice is None or not block:
         return first
-    pitch, (nx, ny) = lattice
+    pitch = lattice[0]
+    moved = dataclasses.replace(config, scene=lattice_scene(config.scene, pitch))
     if stage is not None:
+        nx, ny = moved.scene.plate.cells
         stage(f"design: the part as made loses to a regular array of {pitch:g} mm pitch "
-              f"({_margin(first):+.1f} dB); designing again on its lattice ({nx} x {ny} cells)")
+              f"({margin_db(first):+.1f} dB); designing again on its lattice ({nx} x {ny} "
+              "cells)")
     try:
-        moved = dataclasses.replace(config, scene=lattice_scene(config.scene, pitch))
         second = design_on(moved, replaces={**given, "margin_db": block["margin_db"]})
     except Interrupted:
         raise KeyboardInterrupt from None  # the first design's checkpoint stays for --resume
-    return _better(first, second)
-
-
-def _margin(result: DesignResult) -> float:
-    """The part's smallest margin over its best regular array (dB): -inf when the part as made
-    was not judged, +inf when no regular array is as bright at the eye."""
-    block = None if result.report is None else result.report.made_part
-    if not block:
-        return -math.inf
-    return math.inf if block["margin_db"] is None else float(min(block["margin_db"]))
-
-
-def _better(first: DesignResult, second: DesignResult) -> DesignResult:
-    """Of two designs on different lattices, the one whose part as made beats its own best
-    regular array by more (the first on a tie), with both in `lattices`."""
-    kept = second if _margin(second) > _margin(first) else first
-
-    def record(result: DesignResult) -> dict[str, Any]:
-        plate = result.config.scene.plate
-        block = None if result.report is None else result.report.made_part
-        return {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells),
-                "p10_db": None if not block else list(block["part"]["p10_db"]),
-                "margin_db": None if not block else block["margin_db"],
-                "kept": result is kept}
-
-    return dataclasses.replace(kept, lattices=(record(first), record(second)))
+    return better_part(first, second)
 
 
 def _design_on(
