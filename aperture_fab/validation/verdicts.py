@@ -312,11 +312,10 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
              "content)")
     if replaced is not None:
         nx, ny = replaced["cells"]
-        first = replaced["margin_db"]
         where = (f"The design job made this part on the lattice of the regular array that beat "
-                 f"its part on {nx} x {ny} cells of {replaced['pitch_mm'][0]:g} mm ("
-                 + ("no margin" if first is None else f"{min(first):+.1f} dB")
-                 + "; optimizer.lattice = \"rival\"). " + where)
+                 f"its part on {nx} x {ny} cells of {replaced['pitch_mm'][0]:g} mm "
+                 f"({min(replaced['margin_db']):+.1f} dB; optimizer.lattice = \"rival\"). "
+                 + where)
     if best is None:
         return Verdict(MADE_TOPIC, "info", where + "; no regular array the process makes is "
                        "that bright, so none is compared.")
