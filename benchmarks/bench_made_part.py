@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -103,11 +104,16 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
         return row
     other = _measure_on(name, replace(config, scene=lattice_scene(config.scene, lattice[0])),
                         args)
-    kept = other if other["made_part"]["margin_db"][0] > row["made_part"]["margin_db"][0] \
-        else row
+    kept = other if _margin(other) > _margin(row) else row
     lattices = [{"pitch_mm": r["pitch_mm"], "cells": r["cells"], "p10_db": r["p10_db"],
                  "margin_db": r.get("margin_db"), "kept": r is kept} for r in (row, other)]
     return {**kept, "lattices": lattices, "design_s": row["design_s"] + other["design_s"]}
+
+
+def _margin(row: dict[str, Any]) -> float:
+    """The smallest margin over the best regular array; +inf when none is as bright."""
+    margins = row["made_part"]["margin_db"]
+    return math.inf if margins is None else min(margins)
 
 
 def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str, Any]:
@@ -218,7 +224,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         for tried in row.get("lattices", ()):
             print(f"  {'kept' if tried['kept'] else 'not kept'}: {tried['cells'][0]} x "
                   f"{tried['cells'][1]} cells of {tried['pitch_mm'][0]:g} mm, p10 "
-                  f"{tried['p10_db']:.2f} dB, margin {tried['margin_db']:+.2f} dB", flush=True)
+                  f"{tried['p10_db']:.2f} dB, margin "
+                  + ("none (no regular array as bright)" if tried["margin_db"] is None
+                     else f"{tried['margin_db']:+.2f} dB"), flush=True)
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=2))
     if args.plot is not None:
