@@ -6,15 +6,15 @@ One seed-28 iteration (the seed preset: render through the fused kernels, the su
 error, backward, an SGD step) timed eagerly, then captured as a CUDA graph and replayed. On a
 machine without CUDA it times the eager iteration on the CPU kernels only.
 
-The fused walk plans each launch on the host from the plate: its margin is the largest hole
-radius, read back from the device (`fused_views._walk_plan`), a synchronization that a graph
-capture refuses ("operation not permitted when stream is capturing"). Here the plan is made
-once before the capture, its margin bounded by half a cell's pitch (the seed plate's holes
-stay under it); the library still plans per launch.
+Until 2026-11-29 the fused walk read the largest hole radius back from the device for its
+margin at every launch, a synchronization that a graph capture refuses ("operation not
+permitted when stream is capturing"), and this probe patched the walk's plan to a fixed margin.
+The kernels now read the margin on the device (and which states get a gradient), so the
+iteration captures as the library runs it.
 
-Measured 2026-11-27 on an H200 (torch 2.11, triton 3.6.0): eager 2.32 ms per iteration, graph
-replay 0.72 ms (3.2 times faster; 300 iterations in 0.22 s against issue 20's 0.3 s goal,
-the optimizer's own bookkeeping left out); without the fixed plan the capture fails as above.
+Measured 2026-11-27 on an H200 (torch 2.11, triton 3.6.0), with the patched plan: eager 2.32 ms
+per iteration, graph replay 0.72 ms (3.2 times faster; 300 iterations in 0.22 s against issue
+20's 0.3 s goal, the optimizer's own bookkeeping left out).
 """
 
 from __future__ import annotations
@@ -22,15 +22,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 from bench_optimize import CASES, case_config
 
 from aperture_fab.io.images import prepare_targets
-from aperture_fab.optics import fused_views
 from aperture_fab.optics.model import Renderer
 from aperture_fab.targets import EXAMPLES
 
@@ -38,26 +36,6 @@ from aperture_fab.targets import EXAMPLES
 WARMUP = 5
 #: SGD settings of the seed preset.
 LEARNING_RATE, MOMENTUM = 0.8, 0.9
-
-
-@contextmanager
-def fixed_plan() -> Iterator[None]:
-    """Within: the walk planned once (the first call's plan), its margin at least half a
-    cell's pitch."""
-    original, plan = fused_views._walk_plan, {}
-
-    def once(renderer: Renderer, radius: torch.Tensor, rows: Any, radius_grad: bool) -> Any:
-        if "plan" not in plan:
-            plan["plan"] = original(renderer, radius, rows, radius_grad)
-        offsets, extra, box, shared, margin, closed = plan["plan"]
-        half_cell = max(renderer.scene.plate.pitch_mm) / 2
-        return offsets, extra, box, shared, max(margin, half_cell), closed
-
-    fused_views._walk_plan = once
-    try:
-        yield
-    finally:
-        fused_views._walk_plan = original
 
 
 def seconds_per_call(fn: Callable[[], Any], count: int, cuda: bool) -> float:
@@ -77,8 +55,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=200)
     args = parser.parse_args(argv)
-    with fixed_plan():
-        return _probe(args.iterations)
+    return _probe(args.iterations)
 
 
 def _probe(iterations: int) -> dict[str, Any]:

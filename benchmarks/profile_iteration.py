@@ -2,16 +2,27 @@
 bench_optimize case, its operators and GPU kernels by self time, and launches per iteration.
 
     python benchmarks/profile_iteration.py --device cuda --cases near-eye nominal seed-28
+    python benchmarks/profile_iteration.py --device cuda --syncs --cases nominal
+    python benchmarks/profile_iteration.py --job natural
 
 A tool for finding what bounds a case (launch overhead, one kernel, host bookkeeping); the
-figures to quote are bench_optimize's, as the profiler slows what it watches.
+figures to quote are bench_optimize's, as the profiler slows what it watches. --syncs lists
+instead where an iteration waits for the GPU (torch's sync debug mode: each synchronizing
+operation, by the project's innermost line that called it, per iteration): every such wait
+drains the GPU's queue, so the host's work after it is not overlapped with the GPU's.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Sequence
+import tempfile
+import traceback
+import warnings
+from collections import Counter
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 from bench_optimize import CASES, DEVICES, case_config
@@ -54,14 +65,90 @@ def profile_case(name: str, device_name: str, iterations: int) -> None:
         print(f"kernel launches per iteration: {launches / iterations:.1f}")
 
 
+@contextmanager
+def counting_syncs() -> Iterator[Counter[str]]:
+    """Count the synchronizing CUDA operations run inside, by the project's innermost line
+    that called each (torch's sync debug mode)."""
+    sites: Counter[str] = Counter()
+    package = str(Path(__file__).resolve().parents[1] / "aperture_fab")
+
+    def record(message, category, filename, lineno, file=None, line=None):
+        if "synchroniz" not in str(message):
+            return
+        ours = [f for f in traceback.extract_stack() if f.filename.startswith(package)]
+        where = ours[-1] if ours else traceback.extract_stack()[-3]
+        sites[f"{Path(where.filename).name}:{where.lineno} ({where.name})"] += 1
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = record
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            yield sites
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+
+
+def _print_sites(sites: Counter[str], per: int, rows: int = 25) -> None:
+    for where, count in sites.most_common(rows):
+        print(f"{count / per:8.2f}  {where}")
+    print(f"{sum(sites.values()) / per:8.2f}  in all")
+
+
+def sync_sites(name: str, device_name: str, iterations: int) -> None:
+    """Print where `iterations` optimizer iterations of a case synchronize with the GPU."""
+    case = CASES[name]
+    device = resolve_device(device_name)
+    if device.type != "cuda":
+        raise SystemExit("--syncs needs CUDA: only a GPU's queue can be waited for.")
+    config = case_config(case, str(device), iterations)
+    views, shown = prepare_targets([EXAMPLES[case.target]()], config.scene.eye.view_pixels,
+                                   config.scene.display.pixels)
+    optimize(config.scene, views, shown, dataclasses.replace(config.optimizer, iterations=2),
+             progress=False)
+    with counting_syncs() as sites:
+        optimize(config.scene, views, shown, config.optimizer, progress=False)
+    print(f"== {name} on {device}: synchronizations per iteration ({iterations} iterations)")
+    _print_sites(sites, iterations)
+
+
+def job_syncs(target: str) -> None:
+    """Print where the default design job (`aperture-fab design TARGET --device cuda
+    --no-validate`, in this process) synchronizes with the GPU: a site counted about once per
+    optimizer iteration is in the loop."""
+    from aperture_fab.cli import main as cli
+    from aperture_fab.io.images import encode_png
+
+    with tempfile.TemporaryDirectory() as tmp:
+        image = Path(tmp) / f"{target}.png"
+        image.write_bytes(encode_png(EXAMPLES[target]()))
+        argv = ["design", str(image), "--out", str(Path(tmp) / "out" / "plate.stl"),
+                "--device", "cuda", "--no-validate", "--quiet"]
+        with counting_syncs() as sites:
+            try:
+                cli(argv)
+            except SystemExit:
+                pass
+    print(f"== the design job of {target} on CUDA (--no-validate): synchronizations in all")
+    _print_sites(sites, 1)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--device", choices=DEVICES, default="auto")
     parser.add_argument("--cases", nargs="+", choices=list(CASES), default=["near-eye"])
     parser.add_argument("--iterations", type=int, default=ITERATIONS)
+    parser.add_argument("--syncs", action="store_true",
+                        help="list where an iteration waits for the GPU instead of profiling")
+    parser.add_argument("--job", choices=list(EXAMPLES), default=None,
+                        help="list where the default design job of this target waits for the "
+                             "GPU (instead of the cases)")
     args = parser.parse_args(argv)
+    if args.job is not None:
+        job_syncs(args.job)
+        return
     for name in args.cases:
-        profile_case(name, args.device, args.iterations)
+        (sync_sites if args.syncs else profile_case)(name, args.device, args.iterations)
 
 
 if __name__ == "__main__":

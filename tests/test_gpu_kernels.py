@@ -100,11 +100,13 @@ def test_gpu_kernels_with_display_optics_and_displaced_holes():
     compare(scene, states(*BATCHES["mixed focus"]), offsets)
 
 
-@pytest.mark.parametrize("dead", [(1,), (0, 1, 2)])
-def test_gpu_kernels_leave_states_without_gradient_out(dead):
+@pytest.mark.parametrize("batch_name, dead", [("infinity", (1,)), ("infinity", (0, 1, 2)),
+                                              ("mixed focus", (0,)), ("mixed focus", (0, 1))])
+def test_gpu_kernels_leave_states_without_gradient_out(batch_name, dead):
     """The backward walks only the states whose views get a gradient (a tail loss's best ones
-    get none), with the torch path's gradients (none left: zero)."""
-    compare(make_scene(**SMALL), states(*BATCHES["infinity"]), None, reference="torch",
+    get none; the kernels read which on the device), with the torch path's gradients (none
+    left: zero)."""
+    compare(make_scene(**SMALL), states(*BATCHES[batch_name]), None, reference="torch",
             dead=dead)
 
 
@@ -161,14 +163,16 @@ from triton.compiler import ASTSource
 from aperture_fab.optics import gpu_kernels as g
 
 common = {"radius_ptr": "*fp64", "offsets_ptr": "*fp64", "stack_ptr": sys.argv[1],
-          "vx_ptr": "*fp64", "vy_ptr": "*fp64", "states_ptr": "*fp64", "geom_ptr": "*fp64"}
-sizes = {"extra": "fp64", "margin": "fp64", "closed": "fp64", "nx": "i32", "ny": "i32",
-         "L": "i32", "H": "i32", "W": "i32", "box_r": "i32", "box_c": "i32"}
+          "vx_ptr": "*fp64", "vy_ptr": "*fp64", "states_ptr": "*fp64", "geom_ptr": "*fp64",
+          "margin_ptr": "*fp64"}
+sizes = {"closed": "fp64", "nx": "i32", "ny": "i32", "L": "i32", "H": "i32", "W": "i32"}
 shared, optics = sys.argv[2] == "shared", sys.argv[3] == "optics"
 flags = {"C": 3, "CP": 4, "BLOCK": g.BLOCK, "SHARED": shared, "OPTICS": optics}
-forward = {**common, "out_ptr": "*fp64", **sizes, **{k: "constexpr" for k in flags}}
-backward = {**common, "grad_out_ptr": "*fp64", "grad_radius_ptr": "*fp64",
-            "grad_stack_ptr": "*fp64", **sizes, "n_states": "i32",
+forward = {**common, "out_ptr": "*fp64", "extra": "fp64", "reach": "fp64", **sizes,
+           **{k: "constexpr" for k in flags}}
+backward = {**common, "alive_ptr": "*i32", "grad_out_ptr": "*fp64", "grad_radius_ptr": "*fp64",
+            "grad_stack_ptr": "*fp64", "extra": "fp64", "reach": "fp64", "half_r": "fp64",
+            "half_c": "fp64", **sizes, "n_states": "i32",
             **{k: "constexpr" for k in [*flags, "WANT_STACK"]}}
 target = GPUTarget("cuda", 90, 32)
 for kernel, signature, constants in ((g.forward_kernel, forward, flags),

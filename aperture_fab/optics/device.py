@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 import torch
 
-__all__ = ["Precision", "resolve_device", "torch_dtype"]
+__all__ = ["Precision", "resolve_device", "to_device", "torch_dtype"]
 
 Precision = Literal["float32", "float64"]
 
@@ -27,3 +28,15 @@ def resolve_device(name: str | torch.device) -> torch.device:
 def torch_dtype(precision: Precision) -> torch.dtype:
     """The torch dtype of optimizer.precision."""
     return torch.float64 if precision == "float64" else torch.float32
+
+
+def to_device(values: np.ndarray | list[float], dtype: torch.dtype, device: torch.device
+              ) -> torch.Tensor:
+    """Host values as a tensor on `device`, copied without waiting for its queue: a plain copy
+    to a GPU from pageable memory first waits for every queued kernel, leaving the GPU idle
+    while the host catches up (pinned memory copies asynchronously; PyTorch's host allocator
+    keeps the pinned block until the copy is done)."""
+    tensor = torch.as_tensor(np.ascontiguousarray(values), dtype=dtype)
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)

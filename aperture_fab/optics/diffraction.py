@@ -193,7 +193,7 @@ def hole_classes(open_fraction: torch.Tensor, pitch_mm: tuple[float, float],
     d_max = float(distinct[-1])
     d_low = max(float(distinct[0]), d_max * SMALLEST_CLASS_RATIO)
     edges = torch.logspace(math.log10(d_low), math.log10(d_max),
-                           max_classes + 1, dtype=torch.float64)
+                           max_classes + 1, dtype=torch.float64, device=diameter.device)
     # Interior edges only: smaller holes fall in bin 0, the largest in the last bin.
     index = torch.bucketize(diameter, edges[1:-1], right=True)
     classes = []

@@ -4,7 +4,6 @@ state of a batch in one pass."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import TYPE_CHECKING, Any, cast
 
@@ -12,6 +11,7 @@ import numpy as np
 import torch
 
 from aperture_fab.optics import kernels
+from aperture_fab.optics.device import to_device
 from aperture_fab.optics.planes import EPS
 
 if TYPE_CHECKING:  # the renderer calls these; its module imports this one
@@ -27,16 +27,15 @@ MAX_GRAD_BLOCKS_BYTES = 2 * 2**30
 
 def _gpu_constants(renderer: Renderer) -> tuple[torch.Tensor, ...]:
     """The triton path's fixed inputs on the renderer's device (view directions vx, vy, hole
-    offsets (K, 2), geometry), copied there once: each blocking host-to-device copy waits for
-    the GPU's queue to drain."""
+    offsets (K, 2), geometry), copied there once per renderer (a made copy's moved holes make
+    a new one each iteration), without waiting for the GPU's queue."""
     if renderer._gpu_constants is None:
         vx, vy = renderer.scene.eye.view_directions()
         cells = renderer.scene.plate.cells
         offsets = (np.zeros((cells[0] * cells[1], 2)) if renderer.hole_offset_mm is None
                    else renderer.hole_offset_mm.reshape(-1, 2))
         renderer._gpu_constants = tuple(
-            torch.as_tensor(np.ascontiguousarray(v), dtype=torch.float64,
-                            device=renderer.device)
+            to_device(v, torch.float64, renderer.device)
             for v in (vx, vy, offsets, renderer.kernel_geometry()))
     return renderer._gpu_constants
 
@@ -46,8 +45,9 @@ def _walk_plan(renderer: Renderer, radius: torch.Tensor, rows: np.ndarray, radiu
     """What the fused kernels' hole walk needs beyond the scene (see
     `aperture_fab.optics.kernels`): the hole offsets (K, 2) mm, the search's extra reach, the
     box of holes the union of the states' windows can span, whether every state focuses at
-    infinity (they then share each pair's geometry and display sample), the walk's margin and
-    the radius at or below which a hole is skipped."""
+    infinity (they then share each pair's geometry and display sample), the largest hole
+    displacement (mm; the walk's margin is it plus the largest radius) and the radius at or
+    below which a hole is skipped."""
     scene = renderer.scene
     vx, vy = scene.eye.view_directions()
     offsets = (np.zeros((radius.shape[0], 2)) if renderer.hole_offset_mm is None
@@ -58,12 +58,12 @@ def _walk_plan(renderer: Renderer, radius: torch.Tensor, rows: np.ndarray, radiu
     slack = scene.plate.thickness_mm * float(np.hypot(np.abs(vx).max(), np.abs(vy).max()))
     spread = float(np.ptp(rows[:, :2], axis=0).max() + 2 * (rows[:, 7].max() + extra) + slack)
     box = math.ceil(spread / min(scene.plate.pitch_mm)) + 3
-    margin = float(radius.detach().max()) + (0.0 if renderer.hole_offset_mm is None else float(
-        np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
+    offset_mm = (0.0 if renderer.hole_offset_mm is None else
+                 float(np.linalg.norm(renderer.hole_offset_mm, axis=-1).max()))
     # Without a radius gradient, closed cells (radius sqrt(EPS): no area) are skipped; a
     # gradient keeps them, as a closed cell's gradient can open it.
     closed = 0.0 if radius_grad else CLOSED_RADIUS_MM
-    return offsets, extra, box, shared, margin, closed
+    return offsets, extra, box, shared, offset_mm, closed
 
 
 class KernelView(torch.autograd.Function):
@@ -74,10 +74,11 @@ class KernelView(torch.autograd.Function):
     @staticmethod
     def forward(ctx, radius, stack, renderer, rows):
         vx, vy = renderer.scene.eye.view_directions()
-        offsets, extra, box, shared, margin, closed = _walk_plan(
+        offsets, extra, box, shared, offset_mm, closed = _walk_plan(
             renderer, radius, rows, ctx.needs_input_grad[0])
         channels_last = stack.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
         radius_mm = radius.detach().double().numpy()
+        margin = float(radius_mm.max()) + offset_mm
         next_open = kernels.open_index(radius_mm, renderer.scene.plate.cells, closed)
         args: tuple[Any, ...] = (radius_mm, channels_last, vx, vy, rows,
                                  renderer.kernel_geometry(), offsets, extra, box, shared, margin,
@@ -125,13 +126,13 @@ class TritonView(torch.autograd.Function):
     def forward(ctx, radius, stack, renderer, rows):
         from aperture_fab.optics import gpu_walk
 
-        _, extra, _, shared, margin, closed = _walk_plan(
+        _, extra, _, shared, offset_mm, closed = _walk_plan(
             renderer, radius, rows, ctx.needs_input_grad[0])
         vx, vy, offsets, geometry = _gpu_constants(renderer)
         walk = gpu_walk.Walk(
             radius.detach().double().contiguous(),
             stack.detach()[0].permute(1, 2, 3, 0).contiguous(), vx, vy, rows,
-            renderer.kernel_geometry(), geometry, offsets, extra, shared, margin, closed)
+            renderer.kernel_geometry(), geometry, offsets, extra, shared, offset_mm, closed)
         ctx.walk, ctx.dtype = walk, stack.dtype
         return gpu_walk.view_forward(walk).to(stack.dtype)
 
@@ -139,13 +140,9 @@ class TritonView(torch.autograd.Function):
     def backward(ctx, grad_view):
         from aperture_fab.optics import gpu_walk
 
-        grad = grad_view.detach()
-        live = np.flatnonzero(grad.flatten(1).any(dim=1).cpu().numpy())  # as KernelView's
-        walk = ctx.walk
-        if len(live) < len(walk.states):
-            walk = dataclasses.replace(walk, states=walk.states[live])
-            grad = grad[torch.as_tensor(live, device=grad.device)]
-        grad_radius, grad_stack = gpu_walk.view_backward(walk, grad, bool(ctx.needs_input_grad[1]))
+        # States without a gradient are skipped in the kernel, as KernelView skips them.
+        grad_radius, grad_stack = gpu_walk.view_backward(ctx.walk, grad_view.detach(),
+                                                         bool(ctx.needs_input_grad[1]))
         out_stack = None
         if grad_stack is not None:
             out_stack = grad_stack.permute(3, 0, 1, 2)[None].to(ctx.dtype).contiguous()

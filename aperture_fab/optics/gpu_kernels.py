@@ -325,6 +325,18 @@ def _origin(geom_ptr, ox, oy, outer):
 
 
 @triton.jit
+def _boxes(geom_ptr, margin, reach, half_r, half_c, SHARED: tl.constexpr):
+    """Holes per axis (rows, columns; int32) that each lane walks: `reach` is the largest
+    state's walk radius before the margin (shared: its pupil footprint; else its keep radius
+    and the search's extra), half_r, half_c half the spread of the states' footprints (a
+    union's; 0 for one state's), as `aperture_fab.optics.gpu_walk`'s host plan was."""
+    outer = reach + margin if SHARED else reach
+    rows = tl.floor(2.0 * (outer + half_r) / tl.load(geom_ptr + 3)).to(tl.int32) + 2
+    cols = tl.floor(2.0 * (outer + half_c) / tl.load(geom_ptr + 2)).to(tl.int32) + 2
+    return rows, cols
+
+
+@triton.jit
 def _in_plate(geom_ptr, i, j, live):
     ncx = tl.load(geom_ptr + 0).to(tl.int32)
     ncy = tl.load(geom_ptr + 1).to(tl.int32)
@@ -360,16 +372,19 @@ def _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK: tl.constexpr):
 
 
 #: Integer arguments that Triton would otherwise compile a variant for when they equal 1.
-_SIZES = ["nx", "ny", "L", "H", "W", "box_r", "box_c"]
+_SIZES = ["nx", "ny", "L", "H", "W"]
 
 
 @triton.jit(do_not_specialize=_SIZES)
 def forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
-                    out_ptr, extra, margin, closed, nx, ny, L, H, W, box_r, box_c,
+                    margin_ptr, out_ptr, extra, reach, closed, nx, ny, L, H, W,
                     C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
                     SHARED: tl.constexpr, OPTICS: tl.constexpr):
-    """out[s, c, iy, ix] for state s = program_id(1) and a block of view pixels."""
+    """out[s, c, iy, ix] for state s = program_id(1) and a block of view pixels. margin_ptr:
+    the walk's margin (mm), read on the device, so the host never waits for the plate."""
     s = tl.program_id(1)
+    margin = tl.load(margin_ptr)
+    box_r, box_c = _boxes(geom_ptr, margin, reach, 0.0, 0.0, SHARED)
     live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
     row = states_ptr + s * 8
     cx = tl.load(row + 0)
@@ -412,15 +427,21 @@ def forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_pt
 
 @triton.jit(do_not_specialize=[*_SIZES, "n_states"])
 def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
-                     grad_out_ptr, grad_radius_ptr, grad_stack_ptr, extra, margin, closed,
-                     nx, ny, L, H, W, box_r, box_c, n_states,
+                     margin_ptr, alive_ptr, grad_out_ptr, grad_radius_ptr, grad_stack_ptr,
+                     extra, reach, half_r, half_c, closed, nx, ny, L, H, W, n_states,
                      C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
                      SHARED: tl.constexpr, OPTICS: tl.constexpr, WANT_STACK: tl.constexpr):
     """Gradients of sum(grad_out * view) into grad_radius (K,) and grad_stack (L, H, W, C).
 
     Not shared: program_id(1) is the state, walked as in the forward. Shared: program_id(1) is
     0 and each lane walks the union of all states' windows, summing the states' shares per
-    pair before one scatter."""
+    pair before one scatter. alive_ptr: (S,) int32, 0 for a state whose views get no gradient
+    (a tail loss's best ones): its pairs are not walked (read on the device: no host wait)."""
+    margin = tl.load(margin_ptr)
+    box_r, box_c = _boxes(geom_ptr, margin, reach, half_r, half_c, SHARED)
+    if not SHARED:  # a dead state's program walks nothing
+        alive = tl.load(alive_ptr + tl.program_id(1))
+        box_r = tl.where(alive != 0, box_r, 0)
     live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
     cs = tl.arange(0, CP)
     cmask = live[:, None] & (cs < C)[None, :]
@@ -471,6 +492,7 @@ def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
                                                   extra, SHARED)
                     srow = states_ptr + s * 8
                     seen = ok & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy) <= outer * outer)
+                    seen = seen & (tl.load(alive_ptr + s) != 0)
                     if not SHARED:
                         keep = tl.load(srow + 7)
                         seen = seen & ((bx - fx) * (bx - fx) + (by - fy) * (by - fy)

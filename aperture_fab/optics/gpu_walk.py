@@ -4,7 +4,6 @@ device (`Walk`), the box of holes each lane walks, and the forward and backward 
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -12,24 +11,21 @@ import numpy as np
 import torch
 import triton
 
+from aperture_fab.optics.device import to_device
 from aperture_fab.optics.gpu_kernels import BLOCK, NUM_WARPS, backward_kernel, forward_kernel
 
 __all__ = ["Walk", "view_backward", "view_forward"]
 
 
-def _box(outer_mm: float, pitch_mm: float) -> int:
-    """Holes per axis that a disk of radius outer_mm can span from its first one."""
-    return math.floor(2 * outer_mm / pitch_mm) + 2
-
-
-def _walk(states: np.ndarray, geometry: np.ndarray, margin: float, extra: float, shared: bool,
-          union: bool) -> tuple[int, int]:
-    """Box (rows, columns) of holes each lane walks: one state's disk, or (union) the disk
-    around every state's, as `_span` places them."""
-    outer = (states[:, 2] + margin) if shared else (states[:, 7] + extra)
+def _reach(states: np.ndarray, extra: float, shared: bool, union: bool
+           ) -> tuple[float, float, float]:
+    """The walk's extent before the margin, which the kernels add on the device
+    (`gpu_kernels._boxes`): the largest state's walk radius (shared: its pupil footprint; else
+    its keep radius and the search's extra), mm, and half the spread of the states' footprint
+    centres along rows (y) and columns (x) when each lane walks their union (else 0)."""
+    reach = float(states[:, 2].max()) if shared else float((states[:, 7] + extra).max())
     spread = np.ptp(states[:, :2], axis=0) if union else np.zeros(2)
-    return (_box(float(outer.max() + spread[1] / 2), float(geometry[3])),
-            _box(float(outer.max() + spread[0] / 2), float(geometry[2])))
+    return reach, float(spread[1] / 2), float(spread[0] / 2)
 
 
 @dataclass(frozen=True)
@@ -39,8 +35,10 @@ class Walk:
     radius: (K,) float64 hole radii, mm. stack: (L, H, W, C) channels-last display stack, in
     its own dtype. vx, vy: (nx,), (ny,) float64 view directions (tan). states: (S, 8) and
     geometry: (len(GEOMETRY_FIELDS),) float64 numpy rows; device_geometry: the same row on the
-    stack's device. offsets: (K, 2) float64 hole displacements, mm. extra, margin, closed: mm;
-    shared: every state focuses at infinity.
+    stack's device. offsets: (K, 2) float64 hole displacements, mm. extra, closed: mm;
+    shared: every state focuses at infinity. offset_mm: the largest hole displacement, mm;
+    the walk's margin is it plus the largest radius, found on the device (reading it back
+    would make the host wait for the GPU's queue at every pass).
     """
 
     radius: torch.Tensor
@@ -53,7 +51,7 @@ class Walk:
     offsets: torch.Tensor
     extra: float
     shared: bool
-    margin: float
+    offset_mm: float
     closed: float
 
     def __post_init__(self) -> None:
@@ -70,12 +68,10 @@ class Walk:
     def _args(self) -> tuple[Any, ...]:
         """The kernels' tensor arguments; the states copied to the device once per walk (the
         forward's and the backward's), without waiting for the GPU's queue."""
-        rows = torch.from_numpy(np.ascontiguousarray(self.states, dtype=np.float64))
-        if self.stack.is_cuda:
-            rows = rows.pin_memory()
-        rows = rows.to(self.stack.device, non_blocking=True)
+        rows = to_device(self.states, torch.float64, self.stack.device)
+        margin = self.radius.max().reshape(1) + self.offset_mm
         return (self.radius, self.offsets, self.stack, self.vx, self.vy, rows,
-                self.device_geometry)
+                self.device_geometry, margin)
 
     @property
     def _optics(self) -> bool:
@@ -87,19 +83,19 @@ def view_forward(walk: Walk) -> torch.Tensor:
     levels, height, width, channels = walk.stack.shape
     nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
     out = torch.empty((count, channels, ny, nx), dtype=torch.float64, device=walk.stack.device)
-    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
-                         union=False)
+    reach, _, _ = _reach(walk.states, walk.extra, walk.shared, union=False)
     forward_kernel[(triton.cdiv(nx * ny, BLOCK), count)](
-        *walk._args, out, walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width,
-        box_r, box_c, C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK,
-        SHARED=walk.shared, OPTICS=walk._optics, num_warps=NUM_WARPS)
+        *walk._args, out, walk.extra, reach, walk.closed, nx, ny, levels, height, width,
+        C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
+        OPTICS=walk._optics, num_warps=NUM_WARPS)
     return out
 
 
 def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Gradients of sum(grad_out * view) (grad_out (S, C, ny, nx)) in the radii (K,) float64
-    and, when want_stack, the stack (L, H, W, C) float64."""
+    and, when want_stack, the stack (L, H, W, C) float64. States whose grad_out is all zero
+    are not walked (found on the device)."""
     levels, height, width, channels = walk.stack.shape
     nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
     grad_radius = torch.zeros_like(walk.radius)
@@ -107,11 +103,11 @@ def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
                              device=walk.stack.device)
     if not count:  # no state gets a gradient
         return grad_radius, (grad_stack if want_stack else None)
-    box_r, box_c = _walk(walk.states, walk.geometry, walk.margin, walk.extra, walk.shared,
-                         union=walk.shared)
+    alive = grad_out.flatten(1).any(dim=1).to(torch.int32)
+    reach, half_r, half_c = _reach(walk.states, walk.extra, walk.shared, union=walk.shared)
     backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
-        *walk._args, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
-        walk.extra, walk.margin, walk.closed, nx, ny, levels, height, width, box_r, box_c, count,
+        *walk._args, alive, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
+        walk.extra, reach, half_r, half_c, walk.closed, nx, ny, levels, height, width, count,
         C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
         OPTICS=walk._optics, WANT_STACK=want_stack, num_warps=NUM_WARPS)
     return grad_radius, (grad_stack if want_stack else None)

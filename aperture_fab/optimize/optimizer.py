@@ -23,7 +23,7 @@ from aperture_fab.errors import Refused
 from aperture_fab.fabrication.quantize import MadeSizes
 from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.as_made import MadeDraw, MadeOptics, draw_errors, made_views
-from aperture_fab.optics.device import resolve_device, torch_dtype
+from aperture_fab.optics.device import resolve_device, to_device, torch_dtype
 from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
@@ -197,7 +197,7 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
             if min_efficiency > 0:
                 short = torch.clamp(1 - efficiency / min_efficiency, min=0)
                 per_state = per_state + FLOOR_WEIGHT * short**2
-    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    weights = to_device(states.weight, renderer.dtype, renderer.device)
     loss = combine_states(per_state / targets.shape[0], weights, tail_share)
     if min_eye_level > 0:
         loss = loss + FLOOR_WEIGHT * torch.clamp(1 - eye_level / min_eye_level, min=0) ** 2
@@ -242,7 +242,7 @@ def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
             for s in range(len(states))
         ])
         per_state = per_state + gain_mse_states(views, targets[t])
-    weights = torch.tensor(states.weight, dtype=renderer.dtype, device=renderer.device)
+    weights = to_device(states.weight, renderer.dtype, renderer.device)
     tracked = combine_states(per_state / targets.shape[0], weights, tail_share)
     warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share)
     return tracked + (warm - warm.detach())
@@ -391,13 +391,14 @@ def optimize(
                 state["best"] = math.inf  # the snapped loss starts a new curve
             opt.zero_grad(set_to_none=True)
             loss = loss_fn(iteration)
+            (loss * scale).backward()
+            # Read once the backward is queued: the host's one wait for a GPU per iteration.
             value = float(loss.detach())
             if not math.isfinite(value):
                 raise DivergedError(
                     f"the loss became {value} at iteration {iteration}; lower the learning rate "
                     f"(now {settings.learning_rate}) or use precision float64."
                 )
-            (loss * scale).backward()
             if made is not None and display_param is not None and iteration >= state[
                     "snap_from"] + FROZEN_PLATE_START * (settings.iterations - state["snap_from"]):
                 mask_logits.grad = None  # the plate is settled: fit the display to it
