@@ -34,7 +34,7 @@ from aperture_fab.targets import EXAMPLES
 
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"  # the CPU only in Triton's interpreter
 #: (BLOCK, NUM_WARPS) variants timed by default; the library's first.
-VARIANTS = ("128x4", "64x2", "128x2", "256x4", "256x8", "32x1")
+VARIANTS = ("32x1", "64x2", "128x4", "256x8")
 
 
 def _walk(case_name: str) -> tuple[gpu_walk.Walk, torch.Tensor]:

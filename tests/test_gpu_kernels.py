@@ -168,11 +168,10 @@ common = {"radius_ptr": "*fp64", "offsets_ptr": "*fp64", "stack_ptr": sys.argv[1
 sizes = {"closed": "fp64", "nx": "i32", "ny": "i32", "L": "i32", "H": "i32", "W": "i32"}
 shared, optics = sys.argv[2] == "shared", sys.argv[3] == "optics"
 flags = {"C": 3, "CP": 4, "BLOCK": g.BLOCK, "SHARED": shared, "OPTICS": optics}
-forward = {**common, "out_ptr": "*fp64", "extra": "fp64", "reach": "fp64", **sizes,
+forward = {**common, "out_ptr": "*fp64", "extra": "fp64", **sizes,
            **{k: "constexpr" for k in flags}}
 backward = {**common, "alive_ptr": "*i32", "grad_out_ptr": "*fp64", "grad_radius_ptr": "*fp64",
-            "grad_stack_ptr": "*fp64", "extra": "fp64", "reach": "fp64", "half_r": "fp64",
-            "half_c": "fp64", **sizes, "n_states": "i32",
+            "grad_stack_ptr": "*fp64", "extra": "fp64", **sizes, "n_states": "i32",
             **{k: "constexpr" for k in [*flags, "WANT_STACK"]}}
 target = GPUTarget("cuda", 90, 32)
 for kernel, signature, constants in ((g.forward_kernel, forward, flags),

@@ -40,9 +40,12 @@ __all__ = ["BLOCK", "INTERPRETED", "NUM_WARPS", "backward_kernel", "forward_kern
 
 #: Triton's interpreter runs the kernels (TRITON_INTERPRET=1, read at import as Triton does).
 INTERPRETED = os.environ.get("TRITON_INTERPRET", "0") == "1"
-#: View pixels per program (one lane each) and the warps that run them.
-BLOCK = 128
-NUM_WARPS = 4
+#: View pixels per program (one lane each) and the warps that run them. Small blocks keep a
+#: block's lanes walking alike windows: on an H200 (benchmarks/probe_gpu_blocks.py, near-eye,
+#: 16 states) 32 x 1 ran the forward and backward in 4.7 + 10.1 ms, 128 x 4 in 5.2 + 11.7 ms,
+#: 256 x 8 in 7.8 + 14.4 ms.
+BLOCK = 32
+NUM_WARPS = 1
 #: Constants the kernels read (Triton admits only constexpr globals).
 _EPS = tl.constexpr(1e-12)
 _PI = tl.constexpr(math.pi)
@@ -325,14 +328,18 @@ def _origin(geom_ptr, ox, oy, outer):
 
 
 @triton.jit
-def _boxes(geom_ptr, margin, reach, half_r, half_c, SHARED: tl.constexpr):
-    """Holes per axis (rows, columns; int32) that each lane walks: `reach` is the largest
-    state's walk radius before the margin (shared: its pupil footprint; else its keep radius
-    and the search's extra), half_r, half_c half the spread of the states' footprints (a
-    union's; 0 for one state's), as `aperture_fab.optics.gpu_walk`'s host plan was."""
-    outer = reach + margin if SHARED else reach
-    rows = tl.floor(2.0 * (outer + half_r) / tl.load(geom_ptr + 3)).to(tl.int32) + 2
-    cols = tl.floor(2.0 * (outer + half_c) / tl.load(geom_ptr + 2)).to(tl.int32) + 2
+def _state_box(geom_ptr, states_ptr, s, margin, extra, SHARED: tl.constexpr):
+    """Holes per axis (rows, columns; int32) of the box around state s's walk disk (`_span`'s
+    radius: the pupil footprint and the margin when shared, else the keep radius and the
+    search's extra), from `_origin`: the disk spans 2 outer / pitch of them, and 2 more of
+    slack."""
+    row = states_ptr + s * 8
+    if SHARED:
+        outer = tl.load(row + 2) + margin
+    else:
+        outer = tl.load(row + 7) + extra
+    rows = tl.floor(2.0 * outer / tl.load(geom_ptr + 3)).to(tl.int32) + 2
+    cols = tl.floor(2.0 * outer / tl.load(geom_ptr + 2)).to(tl.int32) + 2
     return rows, cols
 
 
@@ -377,14 +384,15 @@ _SIZES = ["nx", "ny", "L", "H", "W"]
 
 @triton.jit(do_not_specialize=_SIZES)
 def forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
-                    margin_ptr, out_ptr, extra, reach, closed, nx, ny, L, H, W,
+                    margin_ptr, out_ptr, extra, closed, nx, ny, L, H, W,
                     C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
                     SHARED: tl.constexpr, OPTICS: tl.constexpr):
     """out[s, c, iy, ix] for state s = program_id(1) and a block of view pixels. margin_ptr:
-    the walk's margin (mm), read on the device, so the host never waits for the plate."""
+    the walk's margin (mm), read on the device, so the host never waits for the plate; each
+    state walks the box of its own disk."""
     s = tl.program_id(1)
     margin = tl.load(margin_ptr)
-    box_r, box_c = _boxes(geom_ptr, margin, reach, 0.0, 0.0, SHARED)
+    box_r, box_c = _state_box(geom_ptr, states_ptr, s, margin, extra, SHARED)
     live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
     row = states_ptr + s * 8
     cx = tl.load(row + 0)
@@ -428,7 +436,7 @@ def forward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_pt
 @triton.jit(do_not_specialize=[*_SIZES, "n_states"])
 def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_ptr, geom_ptr,
                      margin_ptr, alive_ptr, grad_out_ptr, grad_radius_ptr, grad_stack_ptr,
-                     extra, reach, half_r, half_c, closed, nx, ny, L, H, W, n_states,
+                     extra, closed, nx, ny, L, H, W, n_states,
                      C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr,
                      SHARED: tl.constexpr, OPTICS: tl.constexpr, WANT_STACK: tl.constexpr):
     """Gradients of sum(grad_out * view) into grad_radius (K,) and grad_stack (L, H, W, C).
@@ -437,29 +445,34 @@ def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
     0 and each lane walks the union of all states' windows, summing the states' shares per
     pair before one scatter. alive_ptr: (S,) int32, 0 for a state whose views get no gradient
     (a tail loss's best ones): its pairs are not walked (read on the device: no host wait)."""
-    margin = tl.load(margin_ptr)
-    box_r, box_c = _boxes(geom_ptr, margin, reach, half_r, half_c, SHARED)
-    if not SHARED:  # a dead state's program walks nothing
-        alive = tl.load(alive_ptr + tl.program_id(1))
-        box_r = tl.where(alive != 0, box_r, 0)
     live, ix, iy, vx, vy = _lanes(vx_ptr, vy_ptr, nx, ny, BLOCK)
     cs = tl.arange(0, CP)
     cmask = live[:, None] & (cs < C)[None, :]
     lscale = (L - 1) / 2.0
+    margin = tl.load(margin_ptr)
     if SHARED:
         s_first = 0
         s_last = n_states
     else:
         s_first = tl.program_id(1)
         s_last = s_first + 1
-    # The box's origin: the smallest over the lane's states.
-    r_start = tl.full((BLOCK,), 1 << 30, tl.int32)
-    c_start = tl.full((BLOCK,), 1 << 30, tl.int32)
+    # The box: from the smallest origin over the lane's live states to the farthest end of
+    # their boxes, as many holes as the block's widest needs (a loop bound is the block's).
+    r_start = tl.full((BLOCK,), 1 << 29, tl.int32)
+    c_start = tl.full((BLOCK,), 1 << 29, tl.int32)
+    r_end = tl.full((BLOCK,), -(1 << 29), tl.int32)
+    c_end = tl.full((BLOCK,), -(1 << 29), tl.int32)
     for s in range(_bound(s_first), _bound(s_last)):
+        alive = tl.load(alive_ptr + s) != 0
         _, _, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra, SHARED)
         r0, c0 = _origin(geom_ptr, ox, oy, outer)
-        r_start = tl.minimum(r_start, r0)
-        c_start = tl.minimum(c_start, c0)
+        rows, cols = _state_box(geom_ptr, states_ptr, s, margin, extra, SHARED)
+        r_start = tl.where(alive, tl.minimum(r_start, r0), r_start)
+        c_start = tl.where(alive, tl.minimum(c_start, c0), c_start)
+        r_end = tl.where(alive, tl.maximum(r_end, r0 + rows), r_end)
+        c_end = tl.where(alive, tl.maximum(c_end, c0 + cols), c_end)
+    box_r = tl.maximum(tl.max(tl.where(live, r_end - r_start, 0), axis=0), 0)
+    box_c = tl.maximum(tl.max(tl.where(live, c_end - c_start, 0), axis=0), 0)
     row0 = states_ptr + s_first * 8
     m = tl.load(row0 + 3)
     mu = tl.load(row0 + 4)
@@ -475,8 +488,9 @@ def backward_kernel(radius_ptr, offsets_ptr, stack_ptr, vx_ptr, vy_ptr, states_p
             for s in range(_bound(s_first), _bound(s_last)):
                 _, _, ox, oy, outer = _span(geom_ptr, states_ptr, s, vx, vy, margin, extra,
                                             SHARED)
-                inside = inside | ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy)
-                                   <= outer * outer)
+                inside = inside | ((tl.load(alive_ptr + s) != 0)
+                                   & ((ux - ox) * (ux - ox) + (uy - oy) * (uy - oy)
+                                      <= outer * outer))
             ok = ok & inside
             if _any(ok):
                 # Shared: the pair does not depend on the state (cx, cy unused).

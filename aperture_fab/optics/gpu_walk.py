@@ -1,5 +1,6 @@
 """Launching the fused GPU kernels (aperture_fab.optics.gpu_kernels): what they read, on one
-device (`Walk`), the box of holes each lane walks, and the forward and backward passes."""
+device (`Walk`), and the forward and backward passes. The kernels size each lane's box of holes
+themselves, from the margin and the live states they read on the device."""
 
 from __future__ import annotations
 
@@ -15,17 +16,6 @@ from aperture_fab.optics.device import to_device
 from aperture_fab.optics.gpu_kernels import BLOCK, NUM_WARPS, backward_kernel, forward_kernel
 
 __all__ = ["Walk", "view_backward", "view_forward"]
-
-
-def _reach(states: np.ndarray, extra: float, shared: bool, union: bool
-           ) -> tuple[float, float, float]:
-    """The walk's extent before the margin, which the kernels add on the device
-    (`gpu_kernels._boxes`): the largest state's walk radius (shared: its pupil footprint; else
-    its keep radius and the search's extra), mm, and half the spread of the states' footprint
-    centres along rows (y) and columns (x) when each lane walks their union (else 0)."""
-    reach = float(states[:, 2].max()) if shared else float((states[:, 7] + extra).max())
-    spread = np.ptp(states[:, :2], axis=0) if union else np.zeros(2)
-    return reach, float(spread[1] / 2), float(spread[0] / 2)
 
 
 @dataclass(frozen=True)
@@ -83,9 +73,8 @@ def view_forward(walk: Walk) -> torch.Tensor:
     levels, height, width, channels = walk.stack.shape
     nx, ny, count = len(walk.vx), len(walk.vy), len(walk.states)
     out = torch.empty((count, channels, ny, nx), dtype=torch.float64, device=walk.stack.device)
-    reach, _, _ = _reach(walk.states, walk.extra, walk.shared, union=False)
     forward_kernel[(triton.cdiv(nx * ny, BLOCK), count)](
-        *walk._args, out, walk.extra, reach, walk.closed, nx, ny, levels, height, width,
+        *walk._args, out, walk.extra, walk.closed, nx, ny, levels, height, width,
         C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
         OPTICS=walk._optics, num_warps=NUM_WARPS)
     return out
@@ -104,10 +93,9 @@ def view_backward(walk: Walk, grad_out: torch.Tensor, want_stack: bool
     if not count:  # no state gets a gradient
         return grad_radius, (grad_stack if want_stack else None)
     alive = grad_out.flatten(1).any(dim=1).to(torch.int32)
-    reach, half_r, half_c = _reach(walk.states, walk.extra, walk.shared, union=walk.shared)
     backward_kernel[(triton.cdiv(nx * ny, BLOCK), 1 if walk.shared else count)](
         *walk._args, alive, grad_out.to(torch.float64).contiguous(), grad_radius, grad_stack,
-        walk.extra, reach, half_r, half_c, walk.closed, nx, ny, levels, height, width, count,
+        walk.extra, walk.closed, nx, ny, levels, height, width, count,
         C=channels, CP=triton.next_power_of_2(channels), BLOCK=BLOCK, SHARED=walk.shared,
         OPTICS=walk._optics, WANT_STACK=want_stack, num_warps=NUM_WARPS)
     return grad_radius, (grad_stack if want_stack else None)
