@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The GPU checks of issue 20, in one run on a machine with CUDA (an H100 or H200): the GPU
 # kernels' tests (compiled, against the CPU kernels), where an iteration waits for the GPU,
-# bench_optimize's cases on the GPU, the whole design job on the GPU and where it waits, the
-# kernels' block sizes, a CUDA graph of an iteration and the large case; with GPU_CHECK_CPU=1
-# the same machine's CPU figures too. About 6 minutes; the steps run in order of worth, so a
-# run cut short still leaves the first ones' figures.
+# bench_optimize's cases on the GPU, the whole design job on the GPU (twice: the first compiles
+# the kernel variants the job uses), the kernels' block sizes, a CUDA graph of an iteration
+# and the large case; with GPU_CHECK_CPU=1 the same machine's CPU figures too. About 7
+# minutes; the steps run in order of worth, so a run cut short still leaves the first ones'
+# figures.
 #
 #   benchmarks/gpu_check.sh [OUT_DIR]      (PYTHON=python3 by default; logs and JSON in OUT_DIR)
 #
@@ -42,9 +43,10 @@ step syncs 45 "$py" benchmarks/profile_iteration.py --device cuda --syncs --iter
     --cases nominal near-eye
 step gpu 90 "$py" benchmarks/bench_optimize.py --repeats 1 --json "$out/gpu.json" \
     --device cuda --cases near-eye nominal seed-28
-step design 150 "$py" benchmarks/bench_end_to_end.py --design-args "--device cuda" \
+step design-first 150 "$py" benchmarks/bench_end_to_end.py --design-args "--device cuda" \
+    --json "$out/design-first.json"
+step design 120 "$py" benchmarks/bench_end_to_end.py --design-args "--device cuda" \
     --json "$out/design.json"
-step job-syncs 90 "$py" benchmarks/profile_iteration.py --job natural
 step blocks 60 "$py" benchmarks/probe_gpu_blocks.py --case near-eye
 step graph 30 "$py" benchmarks/probe_cuda_graph.py
 step gpu-large 40 "$py" benchmarks/bench_optimize.py --repeats 1 --json "$out/large.json" \

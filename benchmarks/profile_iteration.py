@@ -3,7 +3,6 @@ bench_optimize case, its operators and GPU kernels by self time, and launches pe
 
     python benchmarks/profile_iteration.py --device cuda --cases near-eye nominal seed-28
     python benchmarks/profile_iteration.py --device cuda --syncs --cases nominal
-    python benchmarks/profile_iteration.py --job natural
 
 A tool for finding what bounds a case (launch overhead, one kernel, host bookkeeping); the
 figures to quote are bench_optimize's, as the profiler slows what it watches. --syncs lists
@@ -16,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import tempfile
 import traceback
 import warnings
 from collections import Counter
@@ -112,27 +110,6 @@ def sync_sites(name: str, device_name: str, iterations: int) -> None:
     _print_sites(sites, iterations)
 
 
-def job_syncs(target: str) -> None:
-    """Print where the default design job (`aperture-fab design TARGET --device cuda
-    --no-validate`, in this process) synchronizes with the GPU: a site counted about once per
-    optimizer iteration is in the loop."""
-    from aperture_fab.cli import main as cli
-    from aperture_fab.io.images import encode_png
-
-    with tempfile.TemporaryDirectory() as tmp:
-        image = Path(tmp) / f"{target}.png"
-        image.write_bytes(encode_png(EXAMPLES[target]()))
-        argv = ["design", str(image), "--out", str(Path(tmp) / "out" / "plate.stl"),
-                "--device", "cuda", "--no-validate", "--quiet"]
-        with counting_syncs() as sites:
-            try:
-                cli(argv)
-            except SystemExit:
-                pass
-    print(f"== the design job of {target} on CUDA (--no-validate): synchronizations in all")
-    _print_sites(sites, 1)
-
-
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--device", choices=DEVICES, default="auto")
@@ -140,13 +117,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--iterations", type=int, default=ITERATIONS)
     parser.add_argument("--syncs", action="store_true",
                         help="list where an iteration waits for the GPU instead of profiling")
-    parser.add_argument("--job", choices=list(EXAMPLES), default=None,
-                        help="list where the default design job of this target waits for the "
-                             "GPU (instead of the cases)")
     args = parser.parse_args(argv)
-    if args.job is not None:
-        job_syncs(args.job)
-        return
     for name in args.cases:
         (sync_sites if args.syncs else profile_case)(name, args.device, args.iterations)
 
