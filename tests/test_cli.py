@@ -346,5 +346,12 @@ def test_a_part_a_regular_array_beats_is_designed_again_on_its_lattice(
     assert written_config(out)["plate"]["cells"] == kept["cells"]
     report = json.loads((out / "report.json").read_text())
     assert report["scene"]["plate"]["cells"] == kept["cells"]
-    # A part made on the rival's lattice says which part it replaces.
+    # A part made on the rival's lattice says which part it replaces; the first part kept says
+    # what the job tried, in report.json and on the page.
     assert ("replaces" in report["run"]) == second["kept"]
+    assert ("tried" in report["run"]) == first["kept"]
+    page = (out / "report.html").read_text()
+    assert ("also designed on the lattice" in page) == first["kept"]
+    if first["kept"]:
+        assert report["run"]["tried"] == {k: second[k] for k in ("pitch_mm", "cells",
+                                                                  "margin_db")}

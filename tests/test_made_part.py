@@ -364,6 +364,56 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
                                                                   [second_margin]]
 
 
+@pytest.mark.parametrize("margin", [[0.2], None])
+def test_a_part_kept_over_its_rivals_lattice_says_what_the_job_tried(margin):
+    found = block(-0.3)
+    report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
+                             config={"optimizer": {"lattice": "rival"}},
+                             fabrication={"process": "photomask"}, checked_part=None,
+                             run={"tried": {"pitch_mm": [2.5, 2.5], "cells": [8, 8],
+                                            "margin_db": margin}})
+    text = made_verdict(found, report).text
+    assert text.startswith("As made")
+    assert ("The design job also designed on the lattice of the array that beat this part (8 x 8 "
+            "cells of 2.5 mm") in text
+    assert ("+0.2 dB over its own best regular array" if margin else "was not judged") in text
+
+
+def test_the_design_jobs_kept_first_part_gets_the_tried_lattice_in_its_report(monkeypatch):
+    """The first part kept: its report (and the page drawn again) records the other lattice."""
+    from aperture_fab.pipeline import design_job
+
+    amended = []
+
+    class Drawn:
+        def __init__(self, report):
+            self.report = report
+
+        def with_report(self, report):
+            return Drawn(report)
+
+    def design_on(images, config, replaces=None, **_):
+        found = block(-0.3 if replaces is None else -0.5)
+        found["regular"]["best"]["pitch_mm"] = 2.5
+        plate = config.scene.plate
+        report = SimpleNamespace(made_part=found, scene={"plate": {
+            "pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
+        return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report,
+                                       evidence=Drawn(report))
+
+    def with_tried(report, tried):
+        amended.append(tried)
+        return SimpleNamespace(**{**vars(report), "tried": tried})
+
+    monkeypatch.setattr(design_job, "_design_on", design_on)
+    monkeypatch.setattr(design_job, "with_tried_lattice", with_tried)
+    monkeypatch.setattr(design_job, "evidence_files", lambda e: {"report.json": e.report})
+    result = design_job.design([np.zeros((3, 4, 4))], resolve("near-eye", None, {}))
+    assert amended == [{"pitch_mm": [2.5, 2.5], "cells": [8, 8], "margin_db": [-0.5]}]
+    assert result.report.tried == amended[0] and result.evidence.report is result.report
+    assert result.report_files == {"report.json": result.report}
+
+
 def test_a_part_made_on_its_rivals_lattice_says_what_it_replaces():
     found = block(0.7)
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [2.5, 2.5], "cells": [8, 8]}},

@@ -54,7 +54,13 @@ from aperture_fab.validation.report import (
     validate_report,
     views_npz,
 )
-from aperture_fab.validation.verdicts import FixPlan, fix_plan, verdicts
+from aperture_fab.validation.verdicts import (
+    MADE_TOPIC,
+    FixPlan,
+    fix_plan,
+    verdicts,
+    with_tried_lattice,
+)
 
 
 def judged(data: Mapping[str, Any], *args: Any) -> Report:
@@ -900,3 +906,23 @@ def test_the_yield_carries_its_wilson_interval(share, samples, lo, hi):
     text = tolerance_verdict({"samples": samples, "yield": share, "threshold_db": 20.0,
                               "psnr_percentiles": {"5": None, "50": None}}).text
     assert f"90 % interval of the yield {100 * lo:.0f} to {100 * hi:.0f} %" in text
+
+
+def test_a_report_amended_with_the_tried_lattice_says_so_and_round_trips() -> None:
+    """The design job keeps its first part over the one on its rival's lattice: run["tried"]
+    and the made-part verdict say so, the other verdicts stay, and the report reads back."""
+    built = build_report(**complete_inputs(), made_part=made_block(),
+                         run={"part": "plate.stl", "process": "resin", "date": "2026-11-29",
+                              "command": None})
+    judged = replace(built, verdicts=tuple(verdicts(built)))
+    tried = {"pitch_mm": [2.5, 2.5], "cells": [8, 8], "margin_db": [-1.0, -1.5]}
+    amended = with_tried_lattice(judged, tried)
+    assert amended.run == {**judged.run, "tried": tried}
+    assert [v.topic for v in amended.verdicts] == [v.topic for v in judged.verdicts]
+    changed = [(a, b) for a, b in zip(judged.verdicts, amended.verdicts, strict=True) if a != b]
+    assert len(changed) == 1 and changed[0][0].topic == MADE_TOPIC
+    assert changed[0][1].text == changed[0][0].text + (
+        " The design job also designed on the lattice of the array that beat this part (8 x 8 "
+        "cells of 2.5 mm; optimizer.lattice = \"rival\"): its part there reached -1.5 dB over "
+        "its own best regular array, so it kept this one.")
+    assert json.loads(report_json(Report.from_json(amended.as_json()))) == amended.as_json()

@@ -63,7 +63,11 @@ from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.report import Report, Verdict, eye_headline
 from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
-from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
+from aperture_fab.validation.verdicts import (
+    RETRY_LATTICE_BELOW_DB,
+    rival_lattice,
+    with_tried_lattice,
+)
 
 if TYPE_CHECKING:
     from aperture_fab.report.evidence import Evidence
@@ -110,6 +114,8 @@ class DesignResult:
         each one's plate and part as made: {"pitch_mm", "cells", "p10_db", "margin_db" (per
         target, over its own best regular array), "kept" (the part this result holds)}, the
         config's own lattice first; empty when it designed on one.
+    evidence: the judged part's figures and page, from which report_files are made (None when
+        not judged).
     """
 
     config: Config
@@ -125,6 +131,7 @@ class DesignResult:
     report: Report | None = None
     report_files: dict[str, bytes] = field(default_factory=dict)
     lattices: tuple[dict[str, Any], ...] = ()
+    evidence: Evidence | None = None
 
     @property
     def verdicts(self) -> tuple[Verdict, ...]:
@@ -182,7 +189,15 @@ def design(
         second = design_on(moved, replaces={**given, "margin_db": block["margin_db"]})
     except Interrupted:
         raise KeyboardInterrupt from None  # the first design's checkpoint stays for --resume
-    return better_part(first, second)
+    result = better_part(first, second)
+    if result.lattices[0]["kept"] and result.evidence is not None:
+        # The first part kept: its report says what the job tried instead (page drawn again).
+        tried = {key: result.lattices[1][key] for key in ("pitch_mm", "cells", "margin_db")}
+        evidence = result.evidence.with_report(with_tried_lattice(result.evidence.report,
+                                                                  tried))
+        result = dataclasses.replace(result, report=evidence.report, evidence=evidence,
+                                     report_files=evidence_files(evidence))
+    return result
 
 
 def _design_on(
@@ -406,7 +421,7 @@ def _with_judgement(result: DesignResult, checked: Validation, evidence: Evidenc
         per_target = [checked.metrics[variant][name] for name in result.names]
         metrics[variant] = {key: [m[key] for m in per_target] for key in ("mse", "psnr_db")}
     return dataclasses.replace(result, metrics=metrics, report=report,
-                               report_files=evidence_files(evidence))
+                               report_files=evidence_files(evidence), evidence=evidence)
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,

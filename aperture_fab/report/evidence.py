@@ -5,7 +5,7 @@ bytes out; the pipeline writes the files."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -40,11 +40,19 @@ __all__ = ["Evidence", "assemble", "eye_figures"]
 @dataclass(frozen=True)
 class Evidence:
     """report: the judged part (report.json's content); html: report.html; views_npz: views.npz
-    bytes."""
+    bytes; figures: the page's figures, name -> PNG bytes; displays: the display contents shown,
+    target name -> PNG bytes."""
 
     report: Report
     html: str
     views_npz: bytes
+    figures: Mapping[str, bytes] = field(default_factory=dict)
+    displays: Mapping[str, bytes] = field(default_factory=dict)
+
+    def with_report(self, report: Report) -> Evidence:
+        """This evidence for an amended report: its page drawn again from the same figures."""
+        return replace(self, report=report,
+                       html=report_html(report, self.figures, self.displays))
 
 
 def assemble(report: Report, names: tuple[str, ...], targets: np.ndarray,
@@ -86,15 +94,16 @@ def assemble(report: Report, names: tuple[str, ...], targets: np.ndarray,
     if validation.tolerance is not None:
         figures["tolerance"] = figure_histogram(
             np.asarray(validation.tolerance["psnr_db"]), validation.tolerance["threshold_db"])
-    html = report_html(report, figures, {
-        name: encode_png(np.clip(d, 0.0, 1.0)) for name, d in zip(names, displays, strict=True)})
+    shown_png = {name: encode_png(np.clip(d, 0.0, 1.0))
+                 for name, d in zip(names, displays, strict=True)}
+    html = report_html(report, figures, shown_png)
     archive = {
         f"{variant}/{name}" + (f"/pos{k}" if v.shape[1] > 1 else ""): v[t, k]
         for variant, v in views.items()
         for t, name in enumerate(names)
         for k in range(v.shape[1])
     }
-    return Evidence(report, html, views_npz(archive))
+    return Evidence(report, html, views_npz(archive), figures, shown_png)
 
 
 def _panel_label(variant: str, values: Mapping[str, Any] | None) -> str:

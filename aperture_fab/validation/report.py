@@ -13,7 +13,8 @@ by `report_json`):
                     "command": the command line, or null when called from Python; and
                     "replaces" when the design job made this part on the best regular array's
                     lattice because its part on the config's own cells lost to that array:
-                    {"pitch_mm", "cells", "margin_db"} of that part}
+                    {"pitch_mm", "cells", "margin_db"} of that part; "tried" when it designed
+                    on that lattice too and kept this part: the same of the other}
     photometry      (optional) the light budget of the part as built, or null when its light
                     efficiency was not computed; see PHOTOMETRY below
     eye_distribution  the headline: the part and the baselines judged over the eye distribution

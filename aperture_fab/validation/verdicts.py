@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from aperture_fab.validation.light import contrast_verdict, light_verdict, lower_floor_fix
@@ -22,7 +22,7 @@ __all__ = ["EYE_MARGIN_DB", "LATTICE_FIX_BELOW_DB", "LEVEL_WORDS", "MADE_MARGIN_
            "MADE_TOPIC", "NOT_JUDGED", "RETRY_LATTICE_BELOW_DB",
            "YIELD_PASS", "YIELD_WARN", "FixPlan", "describe_distribution", "eye_verdict",
            "family_reach", "fix_plan", "made_verdict", "rival_lattice", "tolerance_verdict",
-           "tracked_fix", "verdicts", "yield_interval"]
+           "tracked_fix", "verdicts", "with_tried_lattice", "yield_interval"]
 
 #: Headline variant for verdicts: the first of these that the report holds.
 HEADLINE_VARIANTS: tuple[tuple[str, str], ...] = (
@@ -316,9 +316,10 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
                  f"its part on {nx} x {ny} cells of {replaced['pitch_mm'][0]:g} mm "
                  f"({min(replaced['margin_db']):+.1f} dB; optimizer.lattice = \"rival\"). "
                  + where)
+    tried = None if report is None or report.run is None else report.run.get("tried")
     if best is None:
         return Verdict(MADE_TOPIC, "info", where + "; no regular array the process makes is "
-                       "that bright, so none is compared.")
+                       "that bright, so none is compared." + _tried_text(tried))
     margin = min(block["margin_db"])
     rival = (f"the best regular array at least as bright at the eye ({best['pitch_mm']:g} mm "
              f"pitch, {1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g}"
@@ -326,14 +327,41 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
              f"{family_reach(block)}, reaches {min(best['p10_db']):.1f} dB")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
-                       f"{MADE_MARGIN_DB:g} dB better.")
+                       f"{MADE_MARGIN_DB:g} dB better." + _tried_text(tried))
     if margin >= 0:
         return Verdict(MADE_TOPIC, "warn", f"{where}; {rival}: only {margin:+.1f} dB, less "
                        f"than {MADE_MARGIN_DB:g} dB better: the coded plate buys little over "
-                       "a plain pinhole array.", _made_fixes(report, block))
+                       "a plain pinhole array." + _tried_text(tried),
+                       _made_fixes(report, block))
     return Verdict(MADE_TOPIC, "fail", f"{where}; {rival}: {margin:+.1f} dB. A plain regular "
-                   "pinhole array would look better: do not make this part.",
-                   _made_fixes(report, block))
+                   "pinhole array would look better: do not make this part."
+                   + _tried_text(tried), _made_fixes(report, block))
+
+
+def _tried_text(tried: Mapping[str, Any] | None) -> str:
+    """What the design job found on the lattice it tried and did not keep (report.json's
+    run["tried"]), as a sentence; "" when it tried none."""
+    if tried is None:
+        return ""
+    nx, ny = tried["cells"]
+    found = ("its part there was not judged" if tried["margin_db"] is None else
+             f"its part there reached {min(tried['margin_db']):+.1f} dB over its own best "
+             "regular array")
+    return (f" The design job also designed on the lattice of the array that beat this part "
+            f"({nx} x {ny} cells of {tried['pitch_mm'][0]:g} mm; optimizer.lattice = "
+            f"\"rival\"): {found}, so it kept this one.")
+
+
+def with_tried_lattice(report: Report, tried: Mapping[str, Any]) -> Report:
+    """The report of a part the design job kept over the one it designed on its rival's
+    lattice: run["tried"] ({"pitch_mm", "cells", "margin_db"} of that part) and the made-part
+    verdict saying so."""
+    amended = replace(report, run={**(report.run or {}), "tried": dict(tried)})
+    if amended.made_part is None:
+        return amended
+    return replace(amended, verdicts=tuple(
+        made_verdict(amended.made_part, amended) if v.topic == MADE_TOPIC else v
+        for v in amended.verdicts))
 
 
 def verdicts(report: Report, diffraction_blur_px: float | None = None,
