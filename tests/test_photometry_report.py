@@ -23,6 +23,8 @@ from aperture_fab.validation.formatting import config_rows, label, percent, quan
 from aperture_fab.validation.judge import light_block, run_block
 from aperture_fab.validation.light import (
     LEAKAGE_WARN_SHARE,
+    MADE_STATES,
+    NOMINAL_EYE,
     content_level,
     contrast_verdict,
     light_verdict,
@@ -46,12 +48,13 @@ DATE = "2025-01-02T03:04:05Z"
 
 def block(efficiency: float = 0.0016, level: float = 1.0, *, panel: float = 500.0,
           pupil: float = 4.0, floor: float = 0.0, weight: float = 0.0, od: float = 6.0,
-          open_share: float = 0.2, eye_floor: float = 0.0) -> dict[str, Any]:
+          open_share: float = 0.2, eye_floor: float = 0.0,
+          held: tuple[float, float] | None = None) -> dict[str, Any]:
     return photometry_block(
         efficiency=efficiency, level=level, settings=PhotometrySettings(panel),
         assumed_pupil_mm=pupil, fov_deg=FOV, min_efficiency=floor, efficiency_weight=weight,
         optical_density=od, optical_density_note="metal: opaque", open_share=open_share,
-        min_eye_level=eye_floor)
+        min_eye_level=eye_floor, held=held)
 
 
 def test_the_issues_example_is_mesopic_with_a_wider_pupil() -> None:
@@ -227,7 +230,8 @@ def test_the_verdicts_judge_tolerance_light_and_contrast() -> None:
 
 def test_light_block_uses_the_configs_photometry() -> None:
     config = tiny_config()
-    validation = SimpleNamespace(metrics={"as_built": {"a": {"light_efficiency": 0.002}}})
+    validation = SimpleNamespace(metrics={"as_built": {"a": {"light_efficiency": 0.002}}},
+                                 made_part=None)
     displays = np.full((1, 3, 4, 4), 0.5)
     process = PROCESSES["etched-foil"]
 
@@ -241,8 +245,31 @@ def test_light_block_uses_the_configs_photometry() -> None:
     lit = block(PhotometrySettings(2000.0))
     assert lit is not None and lit["view_luminance_cd_m2"] == pytest.approx(
         2000 * 0.5 * 0.002)
+    assert good["floors_on"] == NOMINAL_EYE and good["floor_efficiency"] == 0.002
+    # With the part as made judged, the floors are judged on it (the optimizer holds them there).
+    validation.made_part = {"part": {"efficiency": 0.003, "eye_level": 0.0012}}
+    made = block(config.photometry)
+    assert made is not None and made["floors_on"] == MADE_STATES
+    assert (made["floor_efficiency"], made["floor_eye_level"]) == (0.003, 0.0012)
+    assert made["light_efficiency"] == 0.002  # the nominal eye's light budget stays
     validation.metrics["as_built"]["a"]["light_efficiency"] = None
     assert block(config.photometry) is None
+
+
+@pytest.mark.parametrize(("held", "meets", "said"), [
+    ((0.021, 0.004), True, "It meets the brightness floor optimizer.min_efficiency = 2.0 % (2.1 "
+     "% as made over the eye distribution, where the optimizer holds it). Photopic"),
+    ((0.0192, 0.004), False, "It misses the brightness floor optimizer.min_efficiency = 2.0 % (1.9 "
+     "% as made over the eye distribution, where the optimizer holds it) by 4.0 % of it."),
+    (None, False, "It misses the brightness floor optimizer.min_efficiency = 2.0 % by 4.0 % of "
+     "it.")])
+def test_the_light_floors_are_judged_where_the_optimizer_holds_them(held, meets, said):
+    """A part at 1.92 % at the nominal eye against a 2 % floor: the floor is judged on the part
+    as made over the eye distribution when that was judged (the digit's part on 2.5 mm cells:
+    1.92 % nominal, 2.26 % as made), else at the nominal eye."""
+    found = block(0.0192, floor=0.02, held=held)
+    assert found["meets_min_efficiency"] is meets
+    assert said in light_verdict(found).text
 
 
 # ---------------------------------------------------------------------------------------------

@@ -171,7 +171,8 @@ def light_html(photometry: Mapping[str, Any] | None) -> str:
         ("brightness floor (optimizer.min_efficiency)",
          "none" if photometry["min_efficiency"] <= 0 else
          f"{percent(photometry['min_efficiency'])}, "
-         + ("met" if photometry["meets_min_efficiency"] else "<b>missed</b>")),
+         + ("met" if photometry["meets_min_efficiency"] else "<b>missed</b>")
+         + f" ({e(photometry.get('floors_on', 'nominal eye'))})"),
     ]
     leak = photometry["leakage"]
     share, ratio = leak["leakage_share"], leak["contrast_ratio"]

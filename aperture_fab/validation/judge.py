@@ -68,12 +68,17 @@ def light_block(settings: PhotometrySettings, optimizer: OptimizerSettings, eye:
                 validation: Validation, displays: np.ndarray, process: Process,
                 open_share: float) -> dict[str, Any] | None:
     """report.json's "photometry" block for the part as built, seen by `eye`, with the
-    optimizer's light floor and weight (None when its light efficiency was not computed)."""
+    optimizer's light floor and weight, judged on the part as made over made copies x eye
+    states where that was judged (None when its light efficiency was not computed)."""
     per_target = validation.metrics.get("as_built", {})
     values = [m["light_efficiency"] for m in per_target.values()]
     if not values or any(v is None or not math.isfinite(v) for v in values):
         return None
+    made = validation.made_part
+    held = None if not made else (float(made["part"]["efficiency"]),
+                                  float(made["part"]["eye_level"]))
     return photometry_block(
+        held=held,
         efficiency=float(np.mean(values)), level=content_level(displays),
         settings=settings,
         assumed_pupil_mm=eye.pupil_mm, fov_deg=(eye.fov_deg[0], eye.fov_deg[1]),

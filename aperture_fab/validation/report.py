@@ -80,7 +80,10 @@ PHOTOMETRY (aperture_fab.validation.light; cd/m2, trolands, mm):
     min_efficiency (optimizer.min_efficiency, 0 = no floor), efficiency_weight,
     meets_min_efficiency (null without a floor), photopic_eye_level (the light at the eye,
     a share of the panel's white, of a photopic view), min_eye_level (optimizer.min_eye_level,
-    0 = no floor), meets_min_eye_level (null without it), warnings [str],
+    0 = no floor), meets_min_eye_level (null without it), floors_on (where the floors are
+    judged: "made copies x eye states", the part as made where the optimizer holds them, or
+    "nominal eye" when that was not judged), floor_efficiency and floor_eye_level (the part's
+    figures there), warnings [str],
     leakage {optical_density, optical_density_note, open_share, leakage_share (light through the
     material over the light through the holes; null: unbounded), contrast_ratio (null:
     unlimited)}
