@@ -42,8 +42,9 @@ __all__ = ["BLOCK", "INTERPRETED", "NUM_WARPS", "backward_kernel", "forward_kern
 INTERPRETED = os.environ.get("TRITON_INTERPRET", "0") == "1"
 #: View pixels per program (one lane each) and the warps that run them. Small blocks keep a
 #: block's lanes walking alike windows: on an H200 (benchmarks/probe_gpu_blocks.py, near-eye,
-#: 16 states) 32 x 1 ran the forward and backward in 4.7 + 10.1 ms, 128 x 4 in 5.2 + 11.7 ms,
-#: 256 x 8 in 7.8 + 14.4 ms.
+#: 16 states) 32 x 1 ran the forward and backward in 4.6 + 10.0 ms, 64 x 2 in 4.9 + 11.6 ms,
+#: 128 x 4 in 4.9 + 12.1 ms (and, before the boxes were sized per state, 256 x 8 in 7.8 +
+#: 14.4 ms).
 BLOCK = 32
 NUM_WARPS = 1
 #: Constants the kernels read (Triton admits only constexpr globals).
