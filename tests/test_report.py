@@ -926,3 +926,20 @@ def test_a_report_amended_with_the_tried_lattice_says_so_and_round_trips() -> No
         "cells of 2.5 mm; optimizer.lattice = \"rival\"): its part there reached -1.5 dB over "
         "its own best regular array, so it kept this one.")
     assert json.loads(report_json(Report.from_json(amended.as_json()))) == amended.as_json()
+
+
+def test_evidence_for_an_amended_report_draws_its_page_again() -> None:
+    """`Evidence.with_report`: the amended report's page from the same figures and views."""
+    from aperture_fab.report.evidence import Evidence
+
+    run = {"part": "plate.stl", "process": "resin", "date": "2026-11-29", "command": None}
+    built = build_report(**complete_inputs(), made_part=made_block(), run=run)
+    judged = replace(built, verdicts=tuple(verdicts(built)))
+    evidence = Evidence(judged, report_html(judged, {}), b"views")
+    tried = {"pitch_mm": [2.5, 2.5], "cells": [8, 8], "margin_db": None}
+    again = evidence.with_report(with_tried_lattice(judged, tried))
+    assert "its part there was not judged" in again.html
+    assert "also designed on the lattice" not in evidence.html
+    assert again.report.run == {**run, "tried": tried} and again.views_npz == b"views"
+    with pytest.raises(ValueError, match="no run block"):
+        with_tried_lattice(replace(judged, run=None), tried)

@@ -355,8 +355,11 @@ def _tried_text(tried: Mapping[str, Any] | None) -> str:
 def with_tried_lattice(report: Report, tried: Mapping[str, Any]) -> Report:
     """The report of a part the design job kept over the one it designed on its rival's
     lattice: run["tried"] ({"pitch_mm", "cells", "margin_db"} of that part) and the made-part
-    verdict saying so."""
-    amended = replace(report, run={**(report.run or {}), "tried": dict(tried)})
+    verdict saying so. The report must have its run block (the design job's reports do)."""
+    if report.run is None:
+        raise ValueError("the report has no run block to record the tried lattice in; build it "
+                         "with build_report(run=judge.run_block(...)).")
+    amended = replace(report, run={**report.run, "tried": dict(tried)})
     if amended.made_part is None:
         return amended
     return replace(amended, verdicts=tuple(
