@@ -13,6 +13,7 @@ from test_model import make_scene
 from aperture_fab.metrics import gain_mse, gain_mse_states
 from aperture_fab.optics import kernels
 from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.kernel_pair import UNROLLED_CHANNELS
 from aperture_fab.optics.kernels import open_index
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import combine_states
@@ -66,6 +67,28 @@ def test_kernels_match_the_torch_path(case, batch_name, displaced):
     assert float(want[0].abs().max()) > 0
     for g, w in zip(got, want, strict=True):
         # atol: the torch path pads with closed cells of radius 1e-6 (area ~3e-12).
+        torch.testing.assert_close(g, w, rtol=1e-7, atol=1e-9 * float(w.abs().max()))
+
+
+@pytest.mark.parametrize("batch_name", list(BATCHES))
+@pytest.mark.parametrize("channels", [1, 2, 4, 5, 6])
+def test_kernels_match_the_torch_path_for_any_channel_count(channels, batch_name):
+    """The kernels unroll a stack's first UNROLLED_CHANNELS channels and loop over the others:
+    views and gradients match the torch path's for fewer, as many and more channels (three:
+    the test above)."""
+    assert UNROLLED_CHANNELS == 4
+    rng = np.random.default_rng(8)
+    scene = make_scene(thickness=0.3, axis="chief_ray")
+    batch = states(*BATCHES[batch_name])
+    a = rng.uniform(0, 0.6, (12, 12))
+    display = rng.random((channels, 60, 60))
+    weight = rng.random((len(batch), channels, 32, 32))
+    got = views_and_grads(Renderer(scene, dtype=torch.float64, backend="kernel"), a, display,
+                          batch, weight)
+    want = views_and_grads(Renderer(scene, dtype=torch.float64, backend="torch"), a, display,
+                           batch, weight)
+    assert got[0].shape[1] == channels and float(want[0].abs().max()) > 0
+    for g, w in zip(got, want, strict=True):
         torch.testing.assert_close(g, w, rtol=1e-7, atol=1e-9 * float(w.abs().max()))
 
 

@@ -38,18 +38,22 @@ from aperture_fab.optics.kernel_pair import (
     EMISSION,
     FAST_MATH,
     LENS_R,
+    add_gradient,
+    add_weighted,
     fill_pair,
     inline_jit,
     pair_chord,
     pair_window,
+    pixel_grads,
     pupil_share,
     sample_stack,
     scatter_stack,
+    store_sums,
 )
 
 #: kernel_pair.py's digest: these kernels inline its functions, and Numba's cache does not see
 #: a change there (`aperture_fab.kernel_sources`).
-INLINED_DIGEST = "c416355033264358"
+INLINED_DIGEST = "aebf79bf6a862626"
 check_inlined(__name__, INLINED_DIGEST, kernel_pair)
 
 __all__ = [
@@ -124,8 +128,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                 fy = states[s, 1] + geometry[9] * v_y
                 ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep, pupil_b,
                                                      margin, extra, shared)
-                for c in range(channels):
-                    acc[c] = 0.0
+                sums = (0.0, 0.0, 0.0, 0.0)
+                acc[:] = 0.0
                 for i in range(r0, r1 + 1):
                     c0, c1 = pair_chord(geometry, ox, oy, outer, i)
                     ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
@@ -146,20 +150,15 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                         if area <= 0.0:
                             continue
                         if ci0 <= j <= ci1:  # wholly inside the pupil
-                            w = area * norm
-                            for c in range(channels):
-                                acc[c] += w * samples[n, c]
+                            sums = add_weighted(sums, acc, area * norm, samples, n)
                             continue
                         if not shared and (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 \
                                 >= keep * keep:
                             continue
                         po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
                         share, _ = pupil_share(pupil_b, cache[n, LENS_R], po)
-                        w = area * share * norm
-                        for c in range(channels):
-                            acc[c] += w * samples[n, c]
-                for c in range(channels):
-                    out[s, c, iy, ix] = acc[c]
+                        sums = add_weighted(sums, acc, area * share * norm, samples, n)
+                store_sums(out, s, iy, ix, sums, acc)
 
 
 @_parallel
@@ -192,6 +191,7 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                     keep = states[s, 7]
                     pupil_b = states[s, 2]
                     norm = states[s, 6]
+                    grads = pixel_grads(grad_out, s, iy, ix)
                     fx = states[s, 0] + geometry[9] * v_x
                     fy = states[s, 1] + geometry[9] * v_y
                     ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep,
@@ -219,12 +219,8 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                             if area <= 0.0:
                                 continue
                             if ci0 <= j <= ci1:  # wholly inside the pupil: share 1
-                                dot = 0.0
-                                for c in range(channels):
-                                    g = grad_out[s, c, iy, ix]
-                                    g_sample[n, c] += g * area * norm
-                                    dot += g * samples[n, c]
-                                g_area[n] += dot * norm
+                                g_area[n] += add_gradient(g_sample, grads, grad_out, s, iy, ix,
+                                                          area, norm, samples, n) * norm
                                 continue
                             if not shared and (cache[n, 0] - fx) ** 2 \
                                     + (cache[n, 1] - fy) ** 2 >= keep * keep:
@@ -234,12 +230,8 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                             if slope == 0.0:
                                 continue
                             w = area * share * norm
-                            dot = 0.0
-                            for c in range(channels):
-                                g = grad_out[s, c, iy, ix]
-                                g_sample[n, c] += g * w
-                                dot += g * samples[n, c]
-                            g_area[n] += dot * slope * norm
+                            g_area[n] += add_gradient(g_sample, grads, grad_out, s, iy, ix, w,
+                                                      1.0, samples, n) * slope * norm
                             if not shared:  # the pair is this state's alone: settle it now
                                 _settle(grad_radius, grad_stack, want_stack, b, cache, samples,
                                         slopes, g_sample, g_area, lscale, geometry, i, j, n)
