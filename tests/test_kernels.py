@@ -13,7 +13,7 @@ from test_model import make_scene
 from aperture_fab.metrics import gain_mse, gain_mse_states
 from aperture_fab.optics import kernels
 from aperture_fab.optics.eyes import EyeStates
-from aperture_fab.optics.kernel_pair import UNROLLED_CHANNELS
+from aperture_fab.optics.kernel_stack import UNROLLED_CHANNELS
 from aperture_fab.optics.kernels import open_index
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import combine_states

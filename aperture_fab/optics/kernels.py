@@ -32,29 +32,31 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from aperture_fab.kernel_sources import check_inlined
-from aperture_fab.optics import kernel_pair
+from aperture_fab.optics import kernel_pair, kernel_stack
 from aperture_fab.optics.kernel_pair import (
     CACHE_FIELDS,
     EMISSION,
     FAST_MATH,
     LENS_R,
-    add_gradient,
-    add_weighted,
     fill_pair,
     inline_jit,
     pair_chord,
     pair_window,
-    pixel_grads,
     pupil_share,
+)
+from aperture_fab.optics.kernel_stack import (
+    add_gradient,
+    add_weighted,
+    pixel_grads,
     sample_stack,
     scatter_stack,
     store_sums,
 )
 
-#: kernel_pair.py's digest: these kernels inline its functions, and Numba's cache does not see
-#: a change there (`aperture_fab.kernel_sources`).
-INLINED_DIGEST = "aebf79bf6a862626"
-check_inlined(__name__, INLINED_DIGEST, kernel_pair)
+#: kernel_pair.py's and kernel_stack.py's digest: these kernels inline their functions, and
+#: Numba's cache does not see a change there (`aperture_fab.kernel_sources`).
+INLINED_DIGEST = "c6e1f523b234d574"
+check_inlined(__name__, INLINED_DIGEST, kernel_pair, kernel_stack)
 
 __all__ = [
     "GEOMETRY_FIELDS",
