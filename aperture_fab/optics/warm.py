@@ -32,6 +32,7 @@ def warm_kernels(dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64
     and a one-channel (light efficiency) display, forward and backward."""
     from aperture_fab.config.config import resolve
     from aperture_fab.optics.model import Renderer, backend_for
+    from aperture_fab.optics.open_view import render_open
 
     config = resolve("near-eye-nominal", None, {
         "plate.cells": [_CELLS, _CELLS], "display.pixels": [_PIXELS, _PIXELS],
@@ -49,5 +50,7 @@ def warm_kernels(dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64
                 display = torch.full((channels, _PIXELS, _PIXELS), 0.5, dtype=dtype,
                                      device=device, requires_grad=True)
                 renderer.render(a, display).sum().backward()
+                if device == "cpu":  # the open display's quadrature (kernel_open)
+                    render_open(config.scene, display.detach(), backend="kernel")
     return time.perf_counter() - start
 
