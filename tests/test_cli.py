@@ -144,10 +144,11 @@ def test_design_writes_outputs_and_prints_the_psnr_table(
                  for v in ("quantized", "as_built")]
     np.testing.assert_allclose(shown, expected, atol=0.006)
     # The baselines are rendered once (validation.validate.baseline_views): the same figures in
-    # design.json and in the report.
+    # design.json and in the report (each computes its PSNR its own way, torch and numpy: they
+    # differ in the last bit about one view in seven).
     for variant in ("open", "regular_pinholes"):
-        assert summary["metrics"][variant]["psnr_db"] == [
-            report["metrics"][variant]["per_target"]["marker"]["psnr_db"]]
+        assert summary["metrics"][variant]["psnr_db"] == pytest.approx(
+            [report["metrics"][variant]["per_target"]["marker"]["psnr_db"]], rel=1e-12)
     with np.load(folder / "design.npz") as npz:
         assert npz["open_fraction"].shape == (16, 16)
 
