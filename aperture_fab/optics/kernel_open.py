@@ -4,9 +4,10 @@
 bilinear interpolation over `subpixels`^2 points of the pixel times a sunflower of pupil
 points. Its torch form builds each view row's sample grid and calls `grid_sample` (the
 reference, and the path for CUDA and for gradients); this kernel takes the same samples without
-building them, which was 2.3 of a `validate`'s 20 s (about 100 eye states). The arithmetic is
-torch's `grid_sample` (bilinear, zeros outside, align_corners=False) in float64, summed in
-float64: the two agree to rounding (tests/test_open_view.py).
+building them: it was 2.75 s of a `validate`'s 20 (by cProfile; 44 views, about 100 eye
+states). The arithmetic is torch's `grid_sample` (bilinear, zeros outside,
+align_corners=False) in float64, summed in float64: the two agree to rounding
+(tests/test_open_view.py).
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ __all__ = ["LANES", "open_quadrature"]
 #: The renderer's fast-math flags (kernel_pair.FAST_MATH: NaN and infinity kept), written out
 #: here because Numba's cache of this kernel sees only this file.
 FAST_MATH = {"nsz", "arcp", "contract", "reassoc"}
-#: Channels per kernel call: the display is padded (or split) to this many, so that a tap's
-#: channels are one aligned vector and their sums stay in registers.
+#: Channels per kernel call: the display is padded (or split) to this many, so that a view
+#: pixel's sums stay in registers (a tap's channels are adjacent).
 LANES = 4
 
 
