@@ -27,6 +27,15 @@ FAST_MATH = {"nsz", "arcp", "contract", "reassoc"}
 LANES = 4
 
 
+@njit(cache=True, error_model="numpy", fastmath=FAST_MATH, inline="always")
+def _bilinear(display, row, col, c, weights):
+    """Channel c of the display between pixel (row, col) and its three neighbours toward +1,
+    with the corners' weights (w00, w01, w10, w11)."""
+    w00, w01, w10, w11 = weights
+    return (w00 * display[row, col, c] + w01 * display[row, col + 1, c]
+            + w10 * display[row + 1, col, c] + w11 * display[row + 1, col + 1, c])
+
+
 @njit(cache=True, error_model="numpy", fastmath=FAST_MATH, parallel=True)
 def open_quadrature(display, fx, fy, px, py, out):
     """Fill out (LANES, ny, nx) float64 with the mean of the display's bilinear samples.
@@ -58,18 +67,11 @@ def open_quadrature(display, fx, fy, px, py, out):
                             w01 = wx * (1.0 - wy)
                             w10 = (1.0 - wx) * wy
                             w11 = wx * wy
-                            a0 += (w00 * display[row, col, 0] + w01 * display[row, col + 1, 0]
-                                   + w10 * display[row + 1, col, 0]
-                                   + w11 * display[row + 1, col + 1, 0])
-                            a1 += (w00 * display[row, col, 1] + w01 * display[row, col + 1, 1]
-                                   + w10 * display[row + 1, col, 1]
-                                   + w11 * display[row + 1, col + 1, 1])
-                            a2 += (w00 * display[row, col, 2] + w01 * display[row, col + 1, 2]
-                                   + w10 * display[row + 1, col, 2]
-                                   + w11 * display[row + 1, col + 1, 2])
-                            a3 += (w00 * display[row, col, 3] + w01 * display[row, col + 1, 3]
-                                   + w10 * display[row + 1, col, 3]
-                                   + w11 * display[row + 1, col + 1, 3])
+                            weights = (w00, w01, w10, w11)
+                            a0 += _bilinear(display, row, col, 0, weights)
+                            a1 += _bilinear(display, row, col, 1, weights)
+                            a2 += _bilinear(display, row, col, 2, weights)
+                            a3 += _bilinear(display, row, col, 3, weights)
                             continue
                         # At the edge: only the taps on the display (zeros padding).
                         for dy in range(2):
