@@ -19,6 +19,18 @@ def test_to_device_copies_host_values_contiguously_in_the_dtype(dtype):
     assert to_device([0.25, 0.75], dtype, torch.device("cpu")).tolist() == [0.25, 0.75]
 
 
+def test_to_device_copies_a_read_only_array():
+    """torch would share it and warn the user that writing to the tensor is undefined."""
+    frozen = np.arange(4.0)
+    frozen.flags.writeable = False
+    tensor = to_device(frozen, torch.float64, torch.device("cpu"))
+    assert not np.shares_memory(tensor.numpy(), frozen)
+    torch.testing.assert_close(tensor, torch.arange(4.0, dtype=torch.float64))
+    writable = np.arange(4.0)  # shared, as before: no copy for the common case
+    assert np.shares_memory(to_device(writable, torch.float64, torch.device("cpu")).numpy(),
+                            writable)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_to_device_reaches_the_gpu_without_a_blocking_copy():
     torch.cuda.set_sync_debug_mode("error")  # a synchronizing copy raises

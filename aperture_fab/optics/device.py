@@ -36,7 +36,12 @@ def to_device(values: np.ndarray | list[float], dtype: torch.dtype, device: torc
     to a GPU from pageable memory first waits for every queued kernel, leaving the GPU idle
     while the host catches up (pinned memory copies asynchronously; PyTorch's host allocator
     keeps the pinned block until the copy is done)."""
-    tensor = torch.as_tensor(np.ascontiguousarray(values), dtype=dtype)
+    array = np.ascontiguousarray(values)
+    if not array.flags.writeable:
+        # torch would share a read-only array (a frozen value's) and warn, to the user, that
+        # writing to the tensor is undefined: copy it, it is small.
+        array = array.copy()
+    tensor = torch.as_tensor(array, dtype=dtype)
     if device.type != "cuda":
         return tensor.to(device)
     return tensor.pin_memory().to(device, non_blocking=True)
