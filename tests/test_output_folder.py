@@ -115,6 +115,30 @@ def test_a_refused_rerun_leaves_the_folder_byte_identical(
     assert snapshot(folder) == before
 
 
+@pytest.mark.parametrize(("flags", "target", "floor"), [
+    ([], "missing.png", 0.0),  # a missing target
+    (["--process", "fdm"], "marker.png", 0.0),  # a process that cannot make the plate
+    ([], "marker.png", 0.99),  # a brightness floor no plate reaches (refused in the job)
+])
+def test_a_refused_first_run_leaves_no_folder_behind(
+        folder: Path, tmp_path: Path, flags: list[str], target: str, floor: float) -> None:
+    config = tmp_path / "floor.toml"
+    config.write_text(TINY_TOML.replace("min_efficiency = 0.0", f"min_efficiency = {floor}"))
+    out = tmp_path / "new" / "deeper" / "plate.stl"
+    assert main(["design", str(folder / target), "--config", str(config), "--out", str(out),
+                 *TINY_FLAGS, *flags]) != 0
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_refused_first_run_keeps_the_folders_that_were_there(folder: Path,
+                                                              tmp_path: Path) -> None:
+    (tmp_path / "mine").mkdir()
+    out = tmp_path / "mine" / "run"
+    assert main(["design", str(folder / "missing.png"), "--config",
+                 str(folder / "tiny.toml"), "--out", str(out), *TINY_FLAGS]) != 0
+    assert (tmp_path / "mine").is_dir() and not out.exists()
+
+
 def test_a_rerun_without_validation_leaves_no_stale_report(folder: Path) -> None:
     stale = folder / "view_initial_old.png"  # a view of a target the new run does not have
     stale.write_bytes((folder / "view_initial_marker.png").read_bytes())

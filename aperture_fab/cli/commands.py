@@ -69,7 +69,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_design(args: argparse.Namespace) -> int:
-    from aperture_fab.io.files import output_folder
+    from aperture_fab.io.files import folder_for
     from aperture_fab.optimize.optimizer import Interrupted
     from aperture_fab.pipeline.design_job import run_design
 
@@ -84,7 +84,7 @@ def cmd_design(args: argparse.Namespace) -> int:
 
     output: Output = args.output
     named = part_format_of(args.out, PART_SUFFIXES)
-    folder = output_folder(args.out)
+    folder = folder_for(args.out)  # run_design creates it (and removes it if refused)
     output.stage(f"design: {config.optimizer.iterations} iterations, then the part"
                  + ("" if validation is None else " and its validation")
                  + f", into {folder}/")

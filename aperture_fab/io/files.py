@@ -7,9 +7,10 @@ temporary name in its folder, flushed to disk, then renamed over the old one.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from aperture_fab.io.decode import decode_image
 from aperture_fab.io.formats import PART_SUFFIXES
 from aperture_fab.io.images import TargetOptions, fit_target
 
-__all__ = ["load_targets", "output_folder", "read_text"]
+__all__ = ["created_folder", "folder_for", "load_targets", "output_folder", "read_text"]
 
 
 #: How text files (configs, hole tables) are read: UTF-8, as TOML requires, with a byte-order
@@ -49,10 +50,17 @@ def _check_text_path(folder: Path) -> None:
                          "another --out.") from None
 
 
-def output_folder(out: Path) -> Path:
-    """The folder for all outputs: `out` itself, or its parent when `out` names a part file."""
+def folder_for(out: Path) -> Path:
+    """The folder for all outputs, not created: `out` itself, or its parent when `out` names a
+    part file."""
     folder = out.parent if out.suffix.lower() in PART_SUFFIXES else out
     _check_text_path(folder)
+    return folder
+
+
+def output_folder(out: Path) -> Path:
+    """`folder_for(out)`, created with its parents, and writable."""
+    folder = folder_for(out)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -61,6 +69,25 @@ def output_folder(out: Path) -> Path:
     if not os.access(folder, os.W_OK):
         raise ValueError(f"the output folder {folder} is not writable; choose another --out.")
     return folder
+
+
+@contextlib.contextmanager
+def created_folder(out: Path) -> Iterator[Path]:
+    """`output_folder(out)` for a block; when the block fails, the folders it created are
+    removed again while they are empty, so that a refused run leaves no empty folder behind (a
+    checkpoint saved there keeps its folder)."""
+    folder = folder_for(out)
+    missing = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
+    output_folder(out)
+    try:
+        yield folder
+    except BaseException:
+        for path in missing:
+            try:
+                path.rmdir()
+            except OSError:  # not empty (or gone): it and the folders above stay
+                break
+        raise
 
 
 #: How a target image is opened. O_NONBLOCK: should the path become a FIFO after the check,

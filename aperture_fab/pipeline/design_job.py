@@ -25,7 +25,7 @@ from aperture_fab.fabrication.part import Part, design_bounds, made_optics, make
 from aperture_fab.fabrication.quantize import made_sizes
 from aperture_fab.fabrication.rules import check_plate
 from aperture_fab.io.atomic import write_atomic
-from aperture_fab.io.files import load_targets, output_folder
+from aperture_fab.io.files import created_folder, load_targets
 from aperture_fab.io.formats import FormatName
 from aperture_fab.io.images import TargetOptions, prepare_targets
 from aperture_fab.io.manifest import publish, remove_listed, staging
@@ -438,8 +438,9 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     new design would leave those reports describing a part that is gone; replace_validated
     (the CLI's --force) replaces it and removes those validation folders with the old set.
 
-    Every check and all the computation come before the folder is touched (only the
-    checkpoint is saved there while optimizing), so a refused run changes nothing. The outputs
+    Every check and all the computation come before anything is written into the folder (only
+    the checkpoint is saved there while optimizing), and a folder the run made is removed again
+    when the run fails before writing there, so a refused run changes nothing. The outputs
     are written into a staging folder and published as one set with manifest.json
     (aperture_fab.io.manifest). command: recorded in the manifest (default: this function).
     on_staged: a testing seam, called with the staging folder after each group of files is
@@ -448,55 +449,57 @@ def run_design(paths: Sequence[Path], out: Path, config: Config, *,
     there are no progress bars). target_options: how the files become targets (--alpha, --fit,
     --frame; aperture_fab.io.images.TargetOptions).
     """
-    folder = output_folder(out)
-    validated = validations_of(folder)
-    if validated and not replace_validated:
-        raise ValueError(
-            f"--out {folder} holds a design that was validated ("
-            f"{', '.join(str(v / 'report.json') for v in validated)}); a new design there would "
-            "replace it and leave that report describing a part that is gone. Give another --out "
-            "to keep both, or add --force to replace the design and its validation.")
-    images, names = load_targets(paths, config.scene.display.pixels, target_options)
-    inputs = input_digests(paths, config, fabrication)
-    chosen = None if target_options is None else target_options.changes()
-    if chosen is not None:  # other targets from the same files: --resume must see a change
-        inputs["the target options (--alpha, --fit, --frame)"] = sha256(chosen.encode())
-    checkpoint = folder / CHECKPOINT_NAME
-    state = resume_state(checkpoint, inputs, paths) if resume else None
-    formats = part_formats(fabrication, out) if fabrication is not None else ()
-    try:
-        result = design(images, config, names=names, fabrication=fabrication,
-                        validation=validation, formats=formats, command=command, state=state,
-                        progress=progress, stage=stage,
-                        on_checkpoint=lambda s: save_checkpoint(folder, s, inputs))
-    except Interrupted as stop:
-        save_checkpoint(folder, stop.state, inputs)
-        raise
-    staged = on_staged if on_staged is not None else (lambda _stage: None)
-    own = design_outputs(result)
-    sheet: dict[str, bytes] = {}
-    if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
-        from aperture_fab.pipeline.assembly_job import sheet_files
+    with created_folder(out) as folder:
+        validated = validations_of(folder)
+        if validated and not replace_validated:
+            reports = ", ".join(str(v / "report.json") for v in validated)
+            raise ValueError(
+                f"--out {folder} holds a design that was validated ({reports}); a new design "
+                "there would replace it and leave that report describing a part that is gone. "
+                "Give another --out to keep both, or add --force to replace the design and its "
+                "validation.")
+        images, names = load_targets(paths, config.scene.display.pixels, target_options)
+        inputs = input_digests(paths, config, fabrication)
+        chosen = None if target_options is None else target_options.changes()
+        if chosen is not None:  # other targets from the same files: --resume must see a change
+            inputs["the target options (--alpha, --fit, --frame)"] = sha256(chosen.encode())
+        checkpoint = folder / CHECKPOINT_NAME
+        state = resume_state(checkpoint, inputs, paths) if resume else None
+        formats = part_formats(fabrication, out) if fabrication is not None else ()
+        try:
+            result = design(images, config, names=names, fabrication=fabrication,
+                            validation=validation, formats=formats, command=command, state=state,
+                            progress=progress, stage=stage,
+                            on_checkpoint=lambda s: save_checkpoint(folder, s, inputs))
+        except Interrupted as stop:
+            save_checkpoint(folder, stop.state, inputs)
+            raise
+        staged = on_staged if on_staged is not None else (lambda _stage: None)
+        own = design_outputs(result)
+        sheet: dict[str, bytes] = {}
+        if result.part is not None and fabrication is not None:  # assembly.html, coupon.*
+            from aperture_fab.pipeline.assembly_job import sheet_files
 
-        sheet = sheet_files(result.part, result.config.scene, fabrication, result.names,
-                            folder.resolve(),
-                            {name: own[f"display_{name}.png"] for name in result.names})
-    # Staged in groups, the part one file at a time (the test seam pauses after each group).
-    groups = [own, *({name: data} for name, data in result.part_files.items()),
-              {**result.report_files, "design.json": summary_json(result)}]
-    with staging(folder) as stage_folder:
-        for group in groups:
-            for name, data in group.items():
+            sheet = sheet_files(result.part, result.config.scene, fabrication, result.names,
+                                folder.resolve(),
+                                {name: own[f"display_{name}.png"] for name in result.names})
+        # Staged in groups, the part one file at a time (the test seam pauses after each group).
+        groups = [own, *({name: data} for name, data in result.part_files.items()),
+                  {**result.report_files, "design.json": summary_json(result)}]
+        with staging(folder) as stage_folder:
+            for group in groups:
+                for name, data in group.items():
+                    write_atomic(stage_folder / name, data)
+                staged(stage_folder)
+            for name, data in sheet.items():
                 write_atomic(stage_folder / name, data)
-            staged(stage_folder)
-        for name, data in sheet.items():
-            write_atomic(stage_folder / name, data)
-        publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
-    for stale in validated:  # they judged the design just replaced
-        remove_listed(stale)
-        with contextlib.suppress(OSError):  # a folder that still holds the user's files stays
-            stale.rmdir()
-    checkpoint.unlink(missing_ok=True)
-    return result
+            publish(stage_folder, folder, command if command is not None else DEFAULT_COMMAND)
+        for stale in validated:  # they judged the design just replaced
+            remove_listed(stale)
+            # A folder that still holds the user's files stays.
+            with contextlib.suppress(OSError):
+                stale.rmdir()
+        checkpoint.unlink(missing_ok=True)
+        return result
 
 
