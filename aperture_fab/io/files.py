@@ -77,7 +77,9 @@ def created_folder(out: Path) -> Iterator[Path]:
     removed again while they are empty, so that a refused run leaves no empty folder behind (a
     checkpoint saved there keeps its folder)."""
     folder = folder_for(out)
-    missing = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
+    # Deepest first. os.path.exists: a name the system refuses (too long) is not there, and
+    # output_folder says why (Path.exists raises).
+    missing = [path for path in (folder, *folder.parents) if not os.path.exists(path)]
     output_folder(out)
     try:
         yield folder
