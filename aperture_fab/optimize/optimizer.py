@@ -28,6 +28,7 @@ from aperture_fab.optics.eyes import EyeStates, distribution_of, iteration_seed
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
 from aperture_fab.optimize.budget import OPTIMIZER_OVERSAMPLE, check_budget
+from aperture_fab.optimize.descent import SGD, Adam, Stepper
 from aperture_fab.optimize.start import initial_state
 
 __all__ = [
@@ -325,9 +326,9 @@ def optimize(
         display_param = state["display"].to(device, dtype).clone().requires_grad_(True)
         params.append(display_param)
     if settings.method == "adam":
-        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
+        opt: Stepper = Adam(params, lr=settings.learning_rate)
     else:
-        opt = torch.optim.SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
+        opt = SGD(params, lr=settings.learning_rate, momentum=settings.momentum)
     if state["optimizer"] is not None:
         opt.load_state_dict(state["optimizer"])
 
@@ -383,13 +384,11 @@ def optimize(
     iteration = start
     try:
         for iteration in range(start, settings.iterations):
-            for group in opt.param_groups:
-                group["lr"] = _lr_at(settings, iteration,
-                                     None if made is None else state["snap_from"])
+            opt.lr = _lr_at(settings, iteration, None if made is None else state["snap_from"])
             if made is not None and iteration == state["snap_from"] > 0:
                 keep_continuous()
                 state["best"] = math.inf  # the snapped loss starts a new curve
-            opt.zero_grad(set_to_none=True)
+            opt.zero_grad()
             loss = loss_fn(iteration)
             (loss * scale).backward()
             # Read once the backward is queued: the host's one wait for a GPU per iteration.
@@ -480,16 +479,15 @@ def fit_display(
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)
-    opt = torch.optim.Adam([shown], lr=settings.learning_rate)
+    opt = Adam([shown], lr=settings.learning_rate)
     schedule = replace(settings, iterations=iterations)
     seen: dict[str, float] = {}
     since_below = math.inf
     history = []
     for iteration in tqdm(range(iterations), desc="fit display", disable=not progress,
                           leave=False):
-        for group in opt.param_groups:
-            group["lr"] = _lr_at(schedule, iteration)
-        opt.zero_grad(set_to_none=True)
+        opt.lr = _lr_at(schedule, iteration)
+        opt.zero_grad()
         loss = _design_loss(renderer, a, shown, target_t,
                             training_states(scene, settings, iteration), 0.0, settings.tail_share,
                             optics=optics, draw=made_draw(scene, settings, optics, iteration),

@@ -70,6 +70,7 @@ import torch
 from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
+from aperture_fab.optimize.descent import Adam
 
 __all__ = ["DEFAULT_ITERATIONS", "Solver", "TrackedViews", "solve_display", "tracked_views"]
 
@@ -178,11 +179,11 @@ def _mlem(renderer: Renderer, a: torch.Tensor, target: torch.Tensor, state: EyeS
 def _adam(renderer: Renderer, a: torch.Tensor, target: torch.Tensor, state: EyeStates,
           start: torch.Tensor, iterations: int, keep_best: bool) -> _Solved:
     param = start.clone().requires_grad_(True)
-    opt = torch.optim.Adam([param], lr=ADAM_LR)
+    opt = Adam([param], lr=ADAM_LR)
     best, best_view, best_db = start, None, -math.inf
     history: list[float] = []
     for _ in range(iterations):
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         view = _render(renderer, a, param, state)
         loss = gain_mse_states(view[None], target)[0]
         value = psnr_db(float(loss.detach()))
