@@ -17,7 +17,6 @@ from aperture_fab.optics.as_made import (
     MadeOptics,
     draw_errors,
     drawn_fractions,
-    join_white,
     made_views,
     made_views_and_white,
     white_transmission,
@@ -217,6 +216,17 @@ def test_white_efficiency_of_a_thin_plate_is_its_open_area(renderer, diameter):
         fraction(diameter), rel=0.03)
 
 
+def test_a_stack_with_white_is_the_two_stacks_joined(renderer, display):
+    """display_stack(with_white=True) writes the white display's stack beside the content's:
+    the same values, to the bit, as the two stacks built apart and joined, in the kernels'
+    channels-last layout."""
+    joined = renderer.display_stack(display, with_white=True)
+    apart = torch.cat([renderer.display_stack(display), renderer.white_stack()], 1)
+    assert joined.shape == apart.shape
+    assert torch.equal(joined, apart)
+    assert joined[0].permute(1, 2, 3, 0).is_contiguous()
+
+
 @pytest.mark.parametrize("with_errors", [False, True])
 def test_the_white_channel_is_the_made_copys_efficiency(renderer, display, with_errors):
     """made_views_and_white renders the white display beside the content: the content views
@@ -230,8 +240,8 @@ def test_the_white_channel_is_the_made_copys_efficiency(renderer, display, with_
     draw = draw_errors((31, 31), optics, np.random.default_rng(4)) if with_errors else None
     states = nominal(renderer)
     stack = renderer.display_stack(display)
-    views, through, white = made_views_and_white(renderer, a, display,
-                                                 join_white(renderer, stack), states, optics,
+    joined = renderer.display_stack(display, with_white=True)
+    views, through, white = made_views_and_white(renderer, a, display, joined, states, optics,
                                                  draw)
     alone, alone_through = made_views(renderer, a, display, states, optics, draw, stack)
     torch.testing.assert_close(views, alone)

@@ -28,7 +28,7 @@ from aperture_fab.optics.leakage import veil
 from aperture_fab.optics.model import Renderer
 
 __all__ = ["MadeOptics", "MadeDraw", "draw_errors", "drawn_fractions", "made_views",
-           "join_white", "made_views_and_white", "white_transmission"]
+           "made_views_and_white", "white_transmission"]
 
 
 @dataclass(frozen=True)
@@ -112,24 +112,15 @@ def made_views(renderer: Renderer, open_fraction: torch.Tensor, display: torch.T
     return _finish(views, a, display, optics, renderer.scene.plate.pitch_mm)
 
 
-def join_white(renderer: Renderer, stack: torch.Tensor) -> torch.Tensor:
-    """A display's stack (1, C, L, H', W') with the uniform white display's joined as channel
-    C, in the stacks' channels-last layout, which the kernels read: what
-    `made_views_and_white` renders. A copy of the stack: build it once per display."""
-    last = (0, 2, 3, 4, 1)
-    return torch.cat([stack.permute(last), renderer.white_stack().to(stack).permute(last)],
-                     -1).permute(0, 4, 1, 2, 3)
-
-
 def made_views_and_white(renderer: Renderer, open_fraction: torch.Tensor,
                          display: torch.Tensor, joined: torch.Tensor, states: EyeStates,
                          optics: MadeOptics, draw: MadeDraw | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """As `made_views`, plus the copy's light efficiency per eye state (S,): its mean view of
     a uniform white display through the same holes, as `white_transmission` gives the drawn
-    plate's. joined: the display's stack with the white one (`join_white`): the white display
-    rides in the same render as an extra channel, since the render's cost is in the holes'
-    geometry, not in its channels."""
+    plate's. joined: the display's stack with the white one (`Renderer.display_stack` with
+    with_white): the white display rides in the same render as an extra channel, since the
+    render's cost is in the holes' geometry, not in its channels."""
     channels = display.shape[0]
     views, a = _render_copy(renderer, open_fraction, joined, states, draw)
     shown, through = _finish(views[:, :channels], a, display, optics,

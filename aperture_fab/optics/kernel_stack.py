@@ -18,7 +18,7 @@ __all__ = ["UNROLLED_CHANNELS", "add_gradient", "add_weighted", "pixel_grads", "
            "scatter_stack", "store_sums"]
 
 #: Channels the kernels unroll: RGB, and the white display
-#: `aperture_fab.optics.as_made.join_white` adds.
+#: `Renderer.display_stack(..., with_white=True)` adds.
 UNROLLED_CHANNELS = 4
 
 

@@ -55,7 +55,7 @@ from aperture_fab.optics.kernel_stack import (
 
 #: kernel_pair.py's and kernel_stack.py's digest: these kernels inline their functions, and
 #: Numba's cache does not see a change there (`aperture_fab.kernel_sources`).
-INLINED_DIGEST = "c6e1f523b234d574"
+INLINED_DIGEST = "08a746cd2037d232"
 check_inlined(__name__, INLINED_DIGEST, kernel_pair, kernel_stack)
 
 __all__ = [

@@ -400,9 +400,12 @@ class Renderer:
 
     # -- display ------------------------------------------------------------------------------
 
-    def display_stack(self, display: torch.Tensor) -> torch.Tensor:
+    def display_stack(self, display: torch.Tensor, with_white: bool = False) -> torch.Tensor:
         """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W'). A striped
-        RGB display (`Display.subpixels`) filters each channel with its stripe's offset."""
+        RGB display (`Display.subpixels`) filters each channel with its stripe's offset.
+        with_white: the uniform white display's stack (`white_stack`) joined as channel C
+        (what `as_made.made_views_and_white` renders), each level written beside it rather
+        than the whole stack copied again to join them (up to 280 MB a judged stack)."""
         d = display.to(self.device, self.dtype)
         if self.oversample > 1:  # each pixel is uniform: its samples repeat its value
             d = d.repeat_interleave(self.oversample, -1).repeat_interleave(self.oversample, -2)
@@ -419,9 +422,20 @@ class Renderer:
         # One level at a time: the product spectrum of every level at once is as large as the
         # stack's inverse transforms, and the batched transform took twice as long (0.20 ->
         # 0.10 s for a float64 near-eye stack at two samples per pixel).
-        levels = torch.stack([torch.fft.irfft2(spectrum * kernel[level], s=self._fft_shape,
-                                               dim=(0, 1))[rows, cols]
-                              for level in range(kernel.shape[0])])
+        def level_of(level: int) -> torch.Tensor:
+            return torch.fft.irfft2(spectrum * kernel[level], s=self._fft_shape,
+                                    dim=(0, 1))[rows, cols]
+
+        if with_white:
+            white = self.white_stack()[0].permute(1, 2, 3, 0)  # (L, H', W', 1)
+            channels = spectrum.shape[-1]
+            levels = torch.empty((*white.shape[:3], channels + 1), dtype=self.dtype,
+                                 device=self.device)
+            for level in range(kernel.shape[0]):
+                levels[level, :, :, :channels] = level_of(level)
+            levels[..., channels:] = white
+        else:
+            levels = torch.stack([level_of(level) for level in range(kernel.shape[0])])
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
 
     def _spectra(self, kernels: np.ndarray) -> torch.Tensor:

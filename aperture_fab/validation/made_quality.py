@@ -26,7 +26,6 @@ from aperture_fab.metrics import gain_psnr_db
 from aperture_fab.optics.as_made import (
     MadeOptics,
     draw_errors,
-    join_white,
     made_views,
     made_views_and_white,
 )
@@ -72,14 +71,13 @@ class MadeQuality:
 
 def judge_stacks(renderer: Renderer, displays: np.ndarray) -> list[torch.Tensor]:
     """The stacks `judge_made` renders displays (T, C, H, W) from: each display's
-    `renderer.display_stack`, the first joined with the white display's (`join_white`: the
+    `renderer.display_stack`, the first with the white display's joined (with_white: the
     plate's efficiency rides in its render). Plates that show the same content share them."""
     with torch.no_grad():
-        stacks = [renderer.display_stack(torch.as_tensor(d, dtype=renderer.dtype,
-                                                         device=renderer.device))
-                  for d in displays]
-        stacks[0] = join_white(renderer, stacks[0])
-    return stacks
+        return [renderer.display_stack(torch.as_tensor(d, dtype=renderer.dtype,
+                                                       device=renderer.device),
+                                       with_white=index == 0)
+                for index, d in enumerate(displays)]
 
 
 def judge_made(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
