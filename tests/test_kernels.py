@@ -8,11 +8,19 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 from test_model import make_scene
 
 from aperture_fab.metrics import gain_mse, gain_mse_states
 from aperture_fab.optics import kernels
 from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.kernel_pair import (
+    CACHE_FIELDS,
+    EMISSION,
+    LENS_R,
+    lens_radius,
+    pair_geometry,
+)
 from aperture_fab.optics.kernel_stack import UNROLLED_CHANNELS
 from aperture_fab.optics.kernels import open_index
 from aperture_fab.optics.model import Renderer
@@ -229,3 +237,45 @@ def test_cuda_matches_the_cpu_kernels():
         gpu_renderer.display_stack(torch.as_tensor(display, dtype=torch.float32, device="cuda")),
         batch)
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-4, atol=1e-6)
+
+
+@njit(cache=False)
+def _pairs_one_by_one(radius, geometry, offsets, states, v_x, v_y, pairs):
+    """`pair_geometry` for each pair (i, j, k), as the kernels' geometry rows."""
+    out = np.empty((CACHE_FIELDS, len(pairs)))
+    for p in range(len(pairs)):
+        values = pair_geometry(radius, geometry, offsets, states, 0, v_x, v_y, pairs[p, 0],
+                               pairs[p, 1], True)
+        for f in range(LENS_R):
+            out[f, p] = values[f]
+        out[LENS_R, p] = lens_radius(values[4])
+        out[EMISSION, p] = values[10]
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), chief=st.booleans(), tilt=st.floats(0.0, 0.6))
+def test_the_shared_geometry_loop_is_pair_geometry(seed, chief, tilt):
+    """The kernels' SIMD loop over shared pairs (`kernels._fill` through `_shared_geometry`,
+    every branch a selection) gives `pair_geometry`'s values for every pair: holes of any size
+    (disks that miss each other at a steep view, levels clamped at both ends), displaced or
+    not, chief-ray axes or not."""
+    rng = np.random.default_rng(seed)
+    cells = 9
+    geometry = np.array([cells, cells, 0.5, 0.5, rng.uniform(0.2, 0.5), float(chief), 0.3, -0.2,
+                         10.0, 10.0, 9.8, 20.0, 10.0, 10.0, 0.05, 0.05, 8.0, 0.0, 1.5, 0.0])
+    assert len(geometry) == len(kernels.GEOMETRY_FIELDS)
+    radius = rng.uniform(1e-6, 0.25, cells * cells)
+    offsets = rng.normal(0.0, 0.01, (cells * cells, 2)) * rng.integers(0, 2)
+    states = np.zeros((1, len(kernels.STATE_FIELDS)))
+    states[0, 5] = rng.uniform(2.0, 20.0)  # level scale: large ones clamp levels at 1
+    v_x, v_y = rng.uniform(-tilt, tilt, 2)
+    pairs = np.array([(i, j, i * cells + j) for i in range(cells) for j in range(cells)])
+    size = len(pairs)
+    geo = np.zeros((CACHE_FIELDS, size))
+    samples, slopes = np.zeros((size, 1)), np.zeros((size, 1))
+    stack = np.zeros((3, 8, 8, 1), dtype=np.float32)
+    kernels._fill(geo, samples, slopes, np.zeros((kernels._INPUTS, size)), stack, radius,
+                  geometry, offsets, states, 0, v_x, v_y, True, pairs, size)
+    alone = _pairs_one_by_one(radius, geometry, offsets, states, v_x, v_y, pairs)
+    np.testing.assert_allclose(geo, alone, rtol=1e-13, atol=1e-15)

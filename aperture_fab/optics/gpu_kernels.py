@@ -162,7 +162,7 @@ def _pair(geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale,
           SHARED: tl.constexpr, OPTICS: tl.constexpr):
     """A (view direction, hole) pair for one eye state: bottom-face centre, lens centre, area,
     d area / d r, equal-area lens radius, stack column, row, level, d level / d r, emission
-    (as `aperture_fab.optics.kernel_pair._pair`)."""
+    (as `aperture_fab.optics.kernel_pair.pair_geometry`)."""
     t = tl.load(geom_ptr + 4)
     s_b = tl.load(geom_ptr + 9)
     s_t = tl.load(geom_ptr + 10)

@@ -1,6 +1,6 @@
 """One (view pixel, hole) pair in the fused CPU kernels (aperture_fab.optics.kernels), inlined into
-them: the hole, its lens and pupil share, the display window it sees, and the row a pair takes
-in the kernels' per-view cache. How a window reads the display stack:
+them: the hole, its lens and pupil share, the display window it sees, and the values the kernels
+keep per pair of a view pixel. How a window reads the display stack:
 `aperture_fab.optics.kernel_stack`."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ import math
 
 from numba import njit
 
-__all__ = ["CACHE_FIELDS", "EMISSION", "FAST_MATH", "LENS_R", "fast_acos", "fast_asin", "fill_pair",
-           "inline_jit", "pair_chord", "pair_window", "pupil_share"]
+__all__ = ["CACHE_FIELDS", "EMISSION", "FAST_MATH", "LENS_R", "asin_ratio", "fast_acos",
+           "fast_asin", "inline_jit", "lens_radius", "pair_chord", "pair_geometry", "pair_window",
+           "pupil_share"]
 
 
 _EPS = 1e-12
@@ -18,8 +19,8 @@ _EPS = 1e-12
 #: contraction let LLVM vectorize the sums; approximate functions are not used ("afn" off).
 FAST_MATH = {"nsz", "arcp", "contract", "reassoc"}
 inline_jit = njit(cache=True, error_model="numpy", fastmath=FAST_MATH, inline="always")
-#: Columns of the per-view pair cache: `_pair`'s first ten values, the lens's equal-area radius
-#: and the pair's emission weight (`_pair`'s last value).
+#: Rows of a view pixel's pair geometry in the kernels: `pair_geometry`'s first ten values, the
+#: lens's equal-area radius (`lens_radius`) and the pair's emission weight (its last value).
 CACHE_FIELDS = 12
 LENS_R = 10
 EMISSION = 11
@@ -35,7 +36,8 @@ _Q = (-2.40339491173441421878e+00, 2.02094576023350569471e+00, -6.88283971605453
 
 
 @inline_jit
-def _asin_ratio(t):
+def asin_ratio(t):
+    """(asin(x) - x) / x^3 for t = x^2, 0 <= t <= 0.25 (fdlibm's rational form)."""
     p = t * (_P[0] + t * (_P[1] + t * (_P[2] + t * (_P[3] + t * (_P[4] + t * _P[5])))))
     q = 1.0 + t * (_Q[0] + t * (_Q[1] + t * (_Q[2] + t * _Q[3])))
     return p / q
@@ -46,10 +48,10 @@ def fast_asin(x):
     """asin(x) for -1 <= x <= 1, within 2 ulp."""
     a = abs(x)
     if a < 0.5:
-        return x + x * _asin_ratio(x * x)
+        return x + x * asin_ratio(x * x)
     t = (1.0 - a) * 0.5
     s = math.sqrt(t)
-    y = math.pi / 2 - 2.0 * (s + s * _asin_ratio(t))
+    y = math.pi / 2 - 2.0 * (s + s * asin_ratio(t))
     return y if x > 0.0 else -y
 
 
@@ -57,10 +59,10 @@ def fast_asin(x):
 def fast_acos(x):
     """acos(x) for -1 <= x <= 1, within 2 ulp."""
     if abs(x) < 0.5:
-        return math.pi / 2 - (x + x * _asin_ratio(x * x))
+        return math.pi / 2 - (x + x * asin_ratio(x * x))
     t = (1.0 - abs(x)) * 0.5
     s = math.sqrt(t)
-    y = 2.0 * (s + s * _asin_ratio(t))
+    y = 2.0 * (s + s * asin_ratio(t))
     return y if x > 0.0 else math.pi - y
 
 
@@ -183,8 +185,8 @@ def _display_optics(geometry, wx, wy, sx, sy):
 
 
 @inline_jit
-def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
-    """Pair (view direction v, hole (i, j)) for eye state s, into a cache row: (bottom-face
+def pair_geometry(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
+    """Pair (view direction v, hole (i, j)) for eye state s: (bottom-face
     centre x, y, lens centre x, y, area, d area / d r, stack column, row, level, d level / d r,
     emission weight). With `shared` (every state focused at infinity: m = mu = 1) nothing here
     depends on the state: the lens and its window are the same for every pupil position.
@@ -234,9 +236,7 @@ def _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
 
 
 @inline_jit
-def fill_pair(cache, n, radius, geometry, offsets, states, s, vx, vy, i, j, shared):
-    pair = _pair(radius, geometry, offsets, states, s, vx, vy, i, j, shared)
-    for f in range(LENS_R):
-        cache[n, f] = pair[f]
-    cache[n, LENS_R] = math.sqrt(max(pair[4] / math.pi, _EPS))
-    cache[n, EMISSION] = pair[10]
+def lens_radius(area):
+    """The radius of a disk of `area` (mm^2), at least sqrt(1e-12) mm: a lens's equal-area
+    radius, its pupil share's scale."""
+    return math.sqrt(max(area / math.pi, _EPS))

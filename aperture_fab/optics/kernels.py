@@ -8,6 +8,13 @@ geometry on the fly from the plate's grid instead of storing a pair table: nothi
 written to memory, so the cost is arithmetic and reads of a stack that stays in cache, and memory
 does not grow with the plate or the eyebox.
 
+Each view pixel goes in three steps: a walk over the holes each eye state's pupil can see
+(`_walk`: each pair listed once, and per state which pairs it sums), the pairs' geometry and
+stack samples in one loop (`_fill`), then each state's sum over its list. When every state
+focuses at infinity the pairs are shared by the states and their geometry is a loop LLVM runs
+in SIMD lanes (`_shared_geometry`); apart from the walk, it cost 40 ns a pair one by one
+(benchmarks/README.md, "What bounds the CPU kernels").
+
 The arithmetic is the same as `aperture_fab.optics.model`'s torch path (which is kept as the
 reference and for CUDA); the tests compare the two, values and gradients. Geometry is in float64;
 the stack is read in its own dtype; sums are kept in float64.
@@ -38,9 +45,11 @@ from aperture_fab.optics.kernel_pair import (
     EMISSION,
     FAST_MATH,
     LENS_R,
-    fill_pair,
+    asin_ratio,
     inline_jit,
+    lens_radius,
     pair_chord,
+    pair_geometry,
     pair_window,
     pupil_share,
 )
@@ -55,7 +64,7 @@ from aperture_fab.optics.kernel_stack import (
 
 #: kernel_pair.py's and kernel_stack.py's digest: these kernels inline their functions, and
 #: Numba's cache does not see a change there (`aperture_fab.kernel_sources`).
-INLINED_DIGEST = "08a746cd2037d232"
+INLINED_DIGEST = "c43520c8afb2b0cf"
 check_inlined(__name__, INLINED_DIGEST, kernel_pair, kernel_stack)
 
 __all__ = [
@@ -94,6 +103,7 @@ def thread_count() -> int:
 
 
 _parallel = njit(cache=True, error_model="numpy", fastmath=FAST_MATH, parallel=True)
+_serial = njit(cache=True, error_model="numpy", fastmath=FAST_MATH)
 
 
 @_parallel
@@ -101,9 +111,9 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
                  next_open, out):
     """out[s, c, iy, ix]: the view of each eye state (see the module docstring).
 
-    box: holes per axis that the union of the states' hole windows can span (the size of the
-    per-view pair cache). shared: every state focuses at infinity, so each pair's geometry and
-    display sample are computed once per view pixel and reused by every state, and a lens
+    box: holes per axis that the union of the states' hole windows can span (the size of a
+    view pixel's pair lists). shared: every state focuses at infinity, so each pair's geometry
+    and display sample are computed once per view pixel and reused by every state, and a lens
     centre is its hole's axis point moved by t v / 2, so the holes whose lens lies wholly
     inside the pupil are a chord of each row, found without testing them. margin: the largest
     lens radius plus the largest hole displacement (mm), which that chord keeps clear of the
@@ -111,56 +121,53 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
     open, so a sparse plate's closed cells cost nothing."""
     channels = stack.shape[3]
     size = box * box
+    count = states.shape[0]
+    groups = 1 if shared else count
+    width = count if shared else 1
     for iy in prange(vy.shape[0]):
-        seen = np.zeros(size, dtype=np.bool_)
-        cache = np.zeros((size, CACHE_FIELDS))
+        slot = np.empty(size, dtype=np.int64)
+        pairs = np.empty((size, 3), dtype=np.int64)
+        inputs = np.empty((_INPUTS, size))
+        geo = np.empty((CACHE_FIELDS, size))
         samples = np.zeros((size, channels))
         slopes = np.zeros((size, channels))
+        evals = np.empty((width, size), dtype=np.int64)
+        lengths = np.empty(width, dtype=np.int64)
         acc = np.zeros(channels)
         v_y = vy[iy]
         for ix in range(vx.shape[0]):
             v_x = vx[ix]
-            seen[:] = False
             origin_r, origin_c = _origin(geometry, states, v_x, v_y, extra)
-            for s in range(states.shape[0]):
-                keep = states[s, 7]
-                pupil_b = states[s, 2]
-                norm = states[s, 6]
-                fx = states[s, 0] + geometry[9] * v_x
-                fy = states[s, 1] + geometry[9] * v_y
-                ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep, pupil_b,
-                                                     margin, extra, shared)
-                sums = (0.0, 0.0, 0.0, 0.0)
-                acc[:] = 0.0
-                for i in range(r0, r1 + 1):
-                    c0, c1 = pair_chord(geometry, ox, oy, outer, i)
-                    ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
-                    j = c0 - 1
-                    while j < c1:  # the open holes of columns c0 to c1
-                        j = next_open[i, j + 1]
-                        if j > c1:
-                            break
-                        n = (i - origin_r) * box + (j - origin_c)
-                        if not (shared and seen[n]):
-                            seen[n] = True
-                            fill_pair(cache, n, radius, geometry, offsets, states, s, v_x, v_y,
-                                      i, j, shared)
-                            if cache[n, 4] > 0.0:
-                                sample_stack(stack, cache[n, 6], cache[n, 7], cache[n, 8], samples,
-                                        slopes, n, cache[n, EMISSION])
-                        area = cache[n, 4]
+            for g in range(groups):
+                s0 = 0 if shared else g
+                filled = _walk(geometry, states, s0, s0 + width, v_x, v_y, margin, extra, shared,
+                               next_open, box, origin_r, origin_c, slot, pairs, evals, lengths)
+                _fill(geo, samples, slopes, inputs, stack, radius, geometry, offsets, states, s0,
+                      v_x, v_y, shared, pairs, filled)
+                for s in range(s0, s0 + width):
+                    keep = states[s, 7]
+                    pupil_b = states[s, 2]
+                    norm = states[s, 6]
+                    fx = states[s, 0] + geometry[9] * v_x
+                    fy = states[s, 1] + geometry[9] * v_y
+                    sums = (0.0, 0.0, 0.0, 0.0)
+                    acc[:] = 0.0
+                    for e in range(lengths[s - s0]):
+                        code = evals[s - s0, e]
+                        p = code >> 1
+                        area = geo[4, p]
                         if area <= 0.0:
                             continue
-                        if ci0 <= j <= ci1:  # wholly inside the pupil
-                            sums = add_weighted(sums, acc, area * norm, samples, n)
+                        if code & 1:  # wholly inside the pupil
+                            sums = add_weighted(sums, acc, area * norm, samples, p)
                             continue
-                        if not shared and (cache[n, 0] - fx) ** 2 + (cache[n, 1] - fy) ** 2 \
+                        if not shared and (geo[0, p] - fx) ** 2 + (geo[1, p] - fy) ** 2 \
                                 >= keep * keep:
                             continue
-                        po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                        share, _ = pupil_share(pupil_b, cache[n, LENS_R], po)
-                        sums = add_weighted(sums, acc, area * share * norm, samples, n)
-                store_sums(out, s, iy, ix, sums, acc)
+                        po = math.sqrt((geo[2, p] - fx) ** 2 + (geo[3, p] - fy) ** 2)
+                        share, _ = pupil_share(pupil_b, geo[LENS_R, p], po)
+                        sums = add_weighted(sums, acc, area * share * norm, samples, p)
+                    store_sums(out, s, iy, ix, sums, acc)
 
 
 @_parallel
@@ -172,97 +179,232 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
     channels = stack.shape[3]
     lscale = (stack.shape[0] - 1) / 2.0
     size = box * box
+    count = states.shape[0]
+    groups = 1 if shared else count
+    width = count if shared else 1
     blocks = grad_radius.shape[0]
     ny = vy.shape[0]
     for b in prange(blocks):
-        seen = np.zeros(size, dtype=np.bool_)
-        cache = np.zeros((size, CACHE_FIELDS))
+        slot = np.empty(size, dtype=np.int64)
+        pairs = np.empty((size, 3), dtype=np.int64)
+        inputs = np.empty((_INPUTS, size))
+        geo = np.empty((CACHE_FIELDS, size))
         samples = np.zeros((size, channels))
         slopes = np.zeros((size, channels))
+        evals = np.empty((width, size), dtype=np.int64)
+        lengths = np.empty(width, dtype=np.int64)
         g_sample = np.zeros((size, channels))  # d loss / d sample, summed over states
         g_area = np.zeros(size)  # d loss / d area through the pupil shares
-        touched = np.zeros(size, dtype=np.int64)
+        used = np.zeros(size, dtype=np.bool_)
         for iy in range(b * ny // blocks, (b + 1) * ny // blocks):
             v_y = vy[iy]
             for ix in range(vx.shape[0]):
                 v_x = vx[ix]
-                seen[:] = False
-                count = 0
                 origin_r, origin_c = _origin(geometry, states, v_x, v_y, extra)
-                for s in range(states.shape[0]):
-                    keep = states[s, 7]
-                    pupil_b = states[s, 2]
-                    norm = states[s, 6]
-                    grads = pixel_grads(grad_out, s, iy, ix)
-                    fx = states[s, 0] + geometry[9] * v_x
-                    fy = states[s, 1] + geometry[9] * v_y
-                    ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, keep,
-                                                         pupil_b, margin, extra, shared)
-                    for i in range(r0, r1 + 1):
-                        c0, c1 = pair_chord(geometry, ox, oy, outer, i)
-                        ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
-                        j = c0 - 1
-                        while j < c1:  # the open holes of columns c0 to c1
-                            j = next_open[i, j + 1]
-                            if j > c1:
-                                break
-                            n = (i - origin_r) * box + (j - origin_c)
-                            if not (shared and seen[n]):
-                                seen[n] = True
-                                fill_pair(cache, n, radius, geometry, offsets, states, s, v_x, v_y,
-                                      i, j, shared)
-                                if cache[n, 4] > 0.0:
-                                    sample_stack(stack, cache[n, 6], cache[n, 7], cache[n, 8],
-                                            samples, slopes, n, cache[n, EMISSION])
-                                    if shared:
-                                        touched[count] = n
-                                        count += 1
-                            area = cache[n, 4]
+                for g in range(groups):
+                    s0 = 0 if shared else g
+                    filled = _walk(geometry, states, s0, s0 + width, v_x, v_y, margin, extra,
+                                   shared, next_open, box, origin_r, origin_c, slot, pairs,
+                                   evals, lengths)
+                    _fill(geo, samples, slopes, inputs, stack, radius, geometry, offsets, states,
+                          s0, v_x, v_y, shared, pairs, filled)
+                    for s in range(s0, s0 + width):
+                        keep = states[s, 7]
+                        pupil_b = states[s, 2]
+                        norm = states[s, 6]
+                        grads = pixel_grads(grad_out, s, iy, ix)
+                        fx = states[s, 0] + geometry[9] * v_x
+                        fy = states[s, 1] + geometry[9] * v_y
+                        for e in range(lengths[s - s0]):
+                            code = evals[s - s0, e]
+                            p = code >> 1
+                            area = geo[4, p]
                             if area <= 0.0:
                                 continue
-                            if ci0 <= j <= ci1:  # wholly inside the pupil: share 1
-                                g_area[n] += add_gradient(g_sample, grads, grad_out, s, iy, ix,
-                                                          area, norm, samples, n) * norm
+                            if code & 1:  # wholly inside the pupil: share 1
+                                g_area[p] += add_gradient(g_sample, grads, grad_out, s, iy, ix,
+                                                          area, norm, samples, p) * norm
+                                used[p] = True
                                 continue
-                            if not shared and (cache[n, 0] - fx) ** 2 \
-                                    + (cache[n, 1] - fy) ** 2 >= keep * keep:
+                            if not shared and (geo[0, p] - fx) ** 2 \
+                                    + (geo[1, p] - fy) ** 2 >= keep * keep:
                                 continue
-                            po = math.sqrt((cache[n, 2] - fx) ** 2 + (cache[n, 3] - fy) ** 2)
-                            share, slope = pupil_share(pupil_b, cache[n, LENS_R], po)
+                            po = math.sqrt((geo[2, p] - fx) ** 2 + (geo[3, p] - fy) ** 2)
+                            share, slope = pupil_share(pupil_b, geo[LENS_R, p], po)
                             if slope == 0.0:
                                 continue
                             w = area * share * norm
-                            g_area[n] += add_gradient(g_sample, grads, grad_out, s, iy, ix, w,
-                                                      1.0, samples, n) * slope * norm
-                            if not shared:  # the pair is this state's alone: settle it now
-                                _settle(grad_radius, grad_stack, want_stack, b, cache, samples,
-                                        slopes, g_sample, g_area, lscale, geometry, i, j, n)
-                for t in range(count):  # shared: every pair the states reached, settled once
-                    n = touched[t]
-                    _settle(grad_radius, grad_stack, want_stack, b, cache, samples, slopes,
-                            g_sample, g_area, lscale, geometry, origin_r + n // box,
-                            origin_c + n % box, n)
+                            g_area[p] += add_gradient(g_sample, grads, grad_out, s, iy, ix, w,
+                                                      1.0, samples, p) * slope * norm
+                            used[p] = True
+                    for p in range(filled):  # every pair the states used, settled once
+                        if used[p]:
+                            used[p] = False
+                            _settle(grad_radius, grad_stack, want_stack, b, geo, samples, slopes,
+                                    g_sample, g_area, lscale, pairs[p, 2], p)
+
+
+#: Rows of a view pixel's gathered pair inputs (`_fill`): the undisplaced hole centre x, y,
+#: its displacement x, y (mm) and its radius (mm).
+_INPUTS = 5
 
 
 @inline_jit
-def _settle(grad_radius, grad_stack, want_stack, b, cache, samples, slopes, g_sample, g_area,
-            lscale, geometry, i, j, n):
-    """Turn a pair's d loss / d sample and d loss / d area into gradients of the hole radius
-    and (want_stack) the stack."""
+def _walk(geometry, states, s0, s1, v_x, v_y, margin, extra, shared, next_open, box, origin_r,
+          origin_c, slot, pairs, evals, lengths):
+    """The pairs states s0 to s1 - 1 reach for one view direction. Each pair once, in walk
+    order, as pairs[p] = (row i, column j, hole index k); each state's in
+    evals[s - s0, :lengths[s - s0]] as 2 p + 1 when its lens lies wholly inside the pupil,
+    else 2 p. Returns the number of pairs."""
+    slot[:] = -1
+    filled = 0
+    for s in range(s0, s1):
+        fx = states[s, 0] + geometry[9] * v_x
+        fy = states[s, 1] + geometry[9] * v_y
+        ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, states[s, 7],
+                                             states[s, 2], margin, extra, shared)
+        length = 0
+        for i in range(r0, r1 + 1):
+            c0, c1 = pair_chord(geometry, ox, oy, outer, i)
+            ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
+            j = c0 - 1
+            while j < c1:  # the open holes of columns c0 to c1
+                j = next_open[i, j + 1]
+                if j > c1:
+                    break
+                n = (i - origin_r) * box + (j - origin_c)
+                p = slot[n]
+                if p < 0:
+                    p = filled
+                    slot[n] = p
+                    pairs[p, 0] = i
+                    pairs[p, 1] = j
+                    pairs[p, 2] = int(i * geometry[0] + j)
+                    filled += 1
+                evals[s - s0, length] = 2 * p + (1 if ci0 <= j <= ci1 else 0)
+                length += 1
+        lengths[s - s0] = length
+    return filled
+
+
+@inline_jit
+def _fill(geo, samples, slopes, inputs, stack, radius, geometry, offsets, states, s, v_x, v_y,
+          shared, pairs, filled):
+    """geo[:, p]: pair p's geometry (`pair_geometry`'s values, the lens's equal-area radius and the
+    emission weight, as CACHE_FIELDS), and samples[p], slopes[p] its stack sample, for the
+    pairs[:filled] of state s (any state when shared). Shared pairs without display optics
+    go through `_shared_geometry`, a loop LLVM vectorizes; the others `pair_geometry` one by
+    one."""
+    if shared and geometry[17] <= 0.0 and geometry[19] <= 0.0:
+        cx0 = (geometry[0] - 1) / 2
+        cy0 = (geometry[1] - 1) / 2
+        for p in range(filled):  # gather the pairs' holes
+            k = pairs[p, 2]
+            inputs[0, p] = (pairs[p, 1] - cx0) * geometry[2]
+            inputs[1, p] = (cy0 - pairs[p, 0]) * geometry[3]
+            inputs[2, p] = offsets[k, 0]
+            inputs[3, p] = offsets[k, 1]
+            inputs[4, p] = radius[k]
+        _shared_geometry(inputs, filled, geometry, states[0, 5], v_x, v_y, geo)
+    else:
+        for p in range(filled):
+            bx, by, lx, ly, area, darea, col, row, level, dlevel, emission = pair_geometry(
+                radius, geometry, offsets, states, s, v_x, v_y, pairs[p, 0], pairs[p, 1], shared)
+            geo[0, p] = bx
+            geo[1, p] = by
+            geo[2, p] = lx
+            geo[3, p] = ly
+            geo[4, p] = area
+            geo[5, p] = darea
+            geo[6, p] = col
+            geo[7, p] = row
+            geo[8, p] = level
+            geo[9, p] = dlevel
+            geo[LENS_R, p] = lens_radius(area)
+            geo[EMISSION, p] = emission
+    for p in range(filled):
+        if geo[4, p] > 0.0:
+            sample_stack(stack, geo[6, p], geo[7, p], geo[8, p], samples, slopes, p,
+                         geo[EMISSION, p])
+
+
+@_serial
+def _shared_geometry(inputs, filled, geometry, level_scale, v_x, v_y, geo):
+    """`pair_geometry`'s shared case (every state focused at infinity) without display optics, for
+    the gathered pairs inputs[:, :filled] (`_INPUTS`), into geo[:, :filled]: the same
+    arithmetic with every branch a selection, so that LLVM runs it in SIMD lanes (8 pairs per
+    AVX-512 instruction: about 4 ns a pair against 40 ns by `pair_geometry`)."""
+    t = geometry[4]
+    chief = geometry[5] > 0
+    eye_x = geometry[6]
+    eye_y = geometry[7]
+    axis = geometry[8]
+    gap = geometry[11] - geometry[9]
+    half_w = geometry[12]
+    half_h = geometry[13]
+    pixel_x = geometry[14]
+    pixel_y = geometry[15]
+    pad = geometry[16]
+    for p in range(filled):
+        hx = inputs[0, p]
+        hy = inputs[1, p]
+        r1 = inputs[4, p]
+        # Chief-ray axes point at the nominal eye from the undisplaced hole.
+        ax = (eye_x - hx) / axis if chief else 0.0
+        ay = (eye_y - hy) / axis if chief else 0.0
+        bx = hx + inputs[2, p] - t / 2 * ax
+        by = hy + inputs[3, p] - t / 2 * ay
+        dx = t * (ax + v_x)
+        dy = t * (ay + v_y)
+        # _lens of equal disks: fast_acos of d / 2 r (>= 0) with both of its branches
+        # computed and one selected; 0 where the disks miss each other.
+        d = math.sqrt(dx * dx + dy * dy)
+        far = d >= 2.0 * r1
+        half = min(d / (2.0 * r1), 1.0)
+        small = half < 0.5
+        u = half * half if small else (1.0 - half) * 0.5
+        ratio = asin_ratio(u)
+        root = math.sqrt(u)
+        theta = (math.pi / 2 - (half + half * ratio)) if small else 2.0 * (root + root * ratio)
+        area = 0.0 if far else 2.0 * r1 * r1 * theta - d * r1 * math.sqrt(1.0 - half * half)
+        darea = 0.0 if far else 4.0 * r1 * theta
+        lx = bx + dx / 2
+        ly = by + dy / 2
+        # _level
+        level = 2.0 * level_scale * area - 1.0
+        inside = (level > -1.0) & (level < 1.0)
+        geo[0, p] = bx
+        geo[1, p] = by
+        geo[2, p] = lx
+        geo[3, p] = ly
+        geo[4, p] = area
+        geo[5, p] = darea
+        geo[6, p] = (lx + gap * v_x + half_w) / pixel_x - 0.5 + pad  # _pixel
+        geo[7, p] = (half_h - (ly + gap * v_y)) / pixel_y - 0.5 + pad
+        geo[8, p] = min(max(level, -1.0), 1.0)
+        geo[9, p] = 2.0 * level_scale * darea if inside else 0.0
+        geo[LENS_R, p] = lens_radius(area)
+        geo[EMISSION, p] = 1.0
+
+
+@inline_jit
+def _settle(grad_radius, grad_stack, want_stack, b, geo, samples, slopes, g_sample, g_area,
+            lscale, k, p):
+    """Turn pair p's d loss / d sample and d loss / d area into gradients of its hole's
+    radius (hole k) and (want_stack) the stack."""
     gl = 0.0
     for c in range(samples.shape[1]):
-        gl += g_sample[n, c] * slopes[n, c]
-    k = int(i * geometry[0] + j)
-    grad_radius[b, k] += g_area[n] * cache[n, 5] + gl * lscale * cache[n, 9]
+        gl += g_sample[p, c] * slopes[p, c]
+    grad_radius[b, k] += g_area[p] * geo[5, p] + gl * lscale * geo[9, p]
     if want_stack:
-        emission = cache[n, EMISSION]
+        emission = geo[EMISSION, p]
         if emission != 1.0:  # the sample was the stack's times the emission weight
             for c in range(samples.shape[1]):
-                g_sample[n, c] *= emission
-        scatter_stack(grad_stack, b, cache[n, 6], cache[n, 7], cache[n, 8], g_sample, n)
-    g_area[n] = 0.0
+                g_sample[p, c] *= emission
+        scatter_stack(grad_stack, b, geo[6, p], geo[7, p], geo[8, p], g_sample, p)
+    g_area[p] = 0.0
     for c in range(samples.shape[1]):
-        g_sample[n, c] = 0.0
+        g_sample[p, c] = 0.0
 
 
 @inline_jit
