@@ -25,6 +25,7 @@ from aperture_fab.validation.report import FIGURE_KEYS, REPORT_VARIANTS, validat
 from aperture_fab.validation.validate import (
     _tilt_offsets_mm,
     layout_fractions,
+    same_filter,
     scaled_field_deg,
     tolerance_analysis,
 )
@@ -245,6 +246,43 @@ def test_tolerance_without_errors_is_the_nominal_part(fitted_part):
     assert not {"hole position error", "plate tilt"} & set(result["not_modelled"])
     assert {"samples", "psnr_db", "psnr_percentiles", "threshold_db", "yield", "radius_bias_mm",
             "radius_sigma_mm", "gap_sigma_mm", "eye_sigma_mm"} <= set(result)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+@pytest.mark.parametrize(("gap_error_mm", "shared"), [(0.1, True), (0.3, True), (-0.3, False)])
+def test_a_gap_error_keeps_the_display_prefilter(fitted_part, gap_error_mm, shared):
+    """A tolerance sample, judged over the field its gap scales the picture to, pre-filters
+    the display as the nominal part does (its view pixel's box on the display moves by about
+    1e-6, relative), so tolerance_analysis renders it from the nominal stack: up to 3 sigma of
+    gap error moves the PSNR by under 1e-4 dB against the sample's own stack. This tiny scene's
+    kernels reach exactly a whole number of samples: a box larger by 1e-6 needs one more
+    (the -0.3 mm case), and then the sample builds its own. A renderer with other levels does
+    not share it either."""
+    import torch
+
+    from aperture_fab.metrics import gain_mse, psnr_db
+    from aperture_fab.optics.model import Renderer
+
+    config, targets, fitted, layout = fitted_part
+    scene = config.scene
+    gap = scene.plate.gap_mm + gap_error_mm
+    moved = replace(scene, plate=replace(scene.plate, gap_mm=gap),
+                    eye=replace(scene.eye, fov_deg=scaled_field_deg(scene.eye.fov_deg,
+                                                                     scene.plate.gap_mm / gap)))
+    nominal = Renderer(scene, dtype=torch.float64)
+    sample = Renderer(moved, dtype=torch.float64)
+    assert nominal.shape.box_mm != sample.shape.box_mm  # close, not equal
+    assert same_filter(nominal.shape, sample.shape) == shared
+    assert (nominal.shape.kernel_size == sample.shape.kernel_size) == shared
+    a = torch.as_tensor(layout_fractions(layout))
+    shown = torch.as_tensor(fitted[0])
+    target = torch.as_tensor(targets[0])
+    own = psnr_db(float(gain_mse(sample.render(a, shown), target)))
+    if shared:
+        borrowed = sample.render_stack(a, nominal.display_stack(shown))
+        assert abs(own - psnr_db(float(gain_mse(borrowed, target)))) < 1e-4
+    smaller = Renderer(scene, dtype=torch.float64, max_radius_mm=scene.plate.max_radius_mm / 2)
+    assert not same_filter(nominal.shape, smaller.shape)
 
 
 @pytest.mark.usefixtures("one_torch_thread")

@@ -309,24 +309,13 @@ class Renderer:
         self.chunk_pairs = chunk_pairs
         self.backend = backend_for(backend, self.device)
         self.optics = opt = Optics.of(scene)
-        eye, display = scene.eye, scene.display
+        eye = scene.eye
         self.shape = shape = stack_shape(scene, oversample, max_radius_mm)
         self.window_max_mm = shape.window_max_mm
         self.oversample = oversample
         self.kernel_size, self.pad = shape.kernel_size, shape.pad
         self._fft_shape = (shape.fft_height, shape.fft_width)
-        radii = shape.radii_mm
-        kernels = _window_kernels(shape.pixel_mm, shape.box_mm, radii, slack_mm=shape.slack_mm)
-        # The kernels' spectra (L, H, W', channels), channels last as the stack is built.
-        self._kernel_spectrum = self._spectra(kernels[..., None])
-        # Striped RGB: each channel's kernels with its stripe's offset (built for a 3-channel
-        # display only; a grey display's one channel fills the pixel).
-        self._subpixel_spectrum: torch.Tensor | None = None
-        offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
-        if offsets_px is not None:
-            self._subpixel_spectrum = self._spectra(np.stack(
-                [_window_kernels(shape.pixel_mm, shape.box_mm, radii, o * display.pixel_mm[0],
-                                 shape.slack_mm) for o in offsets_px], -1))
+        self._filters: tuple[torch.Tensor, torch.Tensor | None] | None = None
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], Pairs] = {}
         self._white: torch.Tensor | None = None
@@ -414,9 +403,9 @@ class Renderer:
         # over the first two axes give each level in it at once, and faster than channels
         # first (4.4 against 7.7 ms for a float32 RGB level of 864^2, bit-identical).
         spectrum = torch.fft.rfft2(d, s=self._fft_shape).permute(1, 2, 0).contiguous()
-        kernel = self._kernel_spectrum
+        kernel, striped = self._window_spectra()
         if self.scene.display.subpixel_offsets_px(d.shape[0]) is not None:
-            kernel = cast(torch.Tensor, self._subpixel_spectrum)
+            kernel = cast(torch.Tensor, striped)
         c = self.kernel_size // 2
         rows, cols = slice(c, c + d.shape[-2]), slice(c, c + d.shape[-1])
         # One level at a time: the product spectrum of every level at once is as large as the
@@ -437,6 +426,25 @@ class Renderer:
         else:
             levels = torch.stack([level_of(level) for level in range(kernel.shape[0])])
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
+
+    def _window_spectra(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The window kernels' spectra (L, H, W', 1), channels last as the stack is built, and
+        for a striped RGB display each channel's with its stripe's offset (L, H, W', 3; None
+        otherwise: a grey display's one channel fills the pixel). Built on the first display
+        stack: a renderer given its stacks (a tolerance sample's) never needs them."""
+        if self._filters is None:
+            shape, display = self.shape, self.scene.display
+            plain = self._spectra(_window_kernels(shape.pixel_mm, shape.box_mm, shape.radii_mm,
+                                                  slack_mm=shape.slack_mm)[..., None])
+            striped = None
+            offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
+            if offsets_px is not None:
+                striped = self._spectra(np.stack(
+                    [_window_kernels(shape.pixel_mm, shape.box_mm, shape.radii_mm,
+                                     o * display.pixel_mm[0], shape.slack_mm)
+                     for o in offsets_px], -1))
+            self._filters = (plain, striped)
+        return self._filters
 
     def _spectra(self, kernels: np.ndarray) -> torch.Tensor:
         """Spectra (L, H, W', K) complex of window kernels (L, h, w, K), over the FFT shape."""
