@@ -373,6 +373,8 @@ def _shared_geometry(inputs, filled, geometry, level_scale, v_x, v_y, geo):
         # _level
         level = 2.0 * level_scale * area - 1.0
         inside = (level > -1.0) & (level < 1.0)
+        # The stores are `_fill`'s written out: through a helper taking the pair as a tuple,
+        # LLVM did not vectorize this loop (forward 98.6 against 80.1 ms).
         geo[0, p] = bx
         geo[1, p] = by
         geo[2, p] = lx
