@@ -23,9 +23,9 @@ from aperture_fab.metrics import agreement_db
 from aperture_fab.targets import digit
 from aperture_fab.validation.report import FIGURE_KEYS, REPORT_VARIANTS, validate_report
 from aperture_fab.validation.validate import (
+    BOX_RTOL,
     _tilt_offsets_mm,
     layout_fractions,
-    same_filter,
     scaled_field_deg,
     tolerance_analysis,
 )
@@ -272,7 +272,7 @@ def test_a_gap_error_keeps_the_display_prefilter(fitted_part, gap_error_mm, shar
     nominal = Renderer(scene, dtype=torch.float64)
     sample = Renderer(moved, dtype=torch.float64)
     assert nominal.shape.box_mm != sample.shape.box_mm  # close, not equal
-    assert same_filter(nominal.shape, sample.shape) == shared
+    assert nominal.shape.filters_like(sample.shape, BOX_RTOL) == shared
     assert (nominal.shape.kernel_size == sample.shape.kernel_size) == shared
     a = torch.as_tensor(layout_fractions(layout))
     shown = torch.as_tensor(fitted[0])
@@ -282,7 +282,7 @@ def test_a_gap_error_keeps_the_display_prefilter(fitted_part, gap_error_mm, shar
         borrowed = sample.render_stack(a, nominal.display_stack(shown))
         assert abs(own - psnr_db(float(gain_mse(borrowed, target)))) < 1e-4
     smaller = Renderer(scene, dtype=torch.float64, max_radius_mm=scene.plate.max_radius_mm / 2)
-    assert not same_filter(nominal.shape, smaller.shape)
+    assert not nominal.shape.filters_like(smaller.shape, BOX_RTOL)
 
 
 @pytest.mark.usefixtures("one_torch_thread")

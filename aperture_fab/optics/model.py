@@ -33,7 +33,7 @@ import copy
 import importlib.util
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal, cast
 
 import numpy as np
@@ -158,6 +158,20 @@ class StackShape:
     radii_mm: np.ndarray
     box_mm: tuple[float, float]
     slack_mm: float
+
+    def filters_like(self, other: StackShape, box_rtol: float) -> bool:
+        """Whether a stack of this shape pre-filters a display as one of `other`'s does: every
+        field equal but the view pixel's box on the display, which may differ by box_rtol
+        (relative)."""
+        for field in fields(self):
+            mine, theirs = getattr(self, field.name), getattr(other, field.name)
+            if field.name == "box_mm":
+                if not all(math.isclose(a, b, rel_tol=box_rtol)
+                           for a, b in zip(mine, theirs, strict=True)):
+                    return False
+            elif not np.array_equal(mine, theirs):
+                return False
+        return True
 
 
 def stack_shape(scene: Scene, oversample: int = STACK_OVERSAMPLE,

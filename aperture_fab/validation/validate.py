@@ -312,25 +312,11 @@ def scaled_field_deg(fov_deg: tuple[float, float], scale: float) -> tuple[float,
                  for f in fov_deg)  # type: ignore[return-value]
 
 
-#: Relative difference of the view pixel's box on the display within which two stacks'
-#: pre-filters count as the same (`same_filter`).
+#: A tolerance sample's gap error, judged over the field its gap scales the picture to, moves
+#: the view pixel's box on the display by about 1e-6 (relative): within this, its stack is
+#: the nominal one's (`StackShape.filters_like`), 16 builds fewer on the default part (about
+#: 0.2 s each), the PSNR within 1e-4 dB (tests/test_validate.py).
 BOX_RTOL = 1e-4
-
-
-def same_filter(a: StackShape, b: StackShape, rtol: float = BOX_RTOL) -> bool:
-    """Whether two renderers pre-filter a display alike: the same stack shape, levels and
-    kernels, their view pixel's box on the display within rtol. A tolerance sample's gap
-    error moves that box by about 1e-6 (relative): the view is taken over the field the gap
-    scales the picture to, which keeps the box nearly as it was; the nominal stack then serves
-    every sample, 16 builds fewer (about 0.2 s each on the default part), and the PSNR changes
-    by under 1e-4 dB (tests/test_validate.py)."""
-    exact = (a.levels, a.height, a.width, a.fft_height, a.fft_width, a.kernel_size, a.pad,
-             a.pixels, a.pixel_mm, a.window_max_mm, a.slack_mm)
-    other = (b.levels, b.height, b.width, b.fft_height, b.fft_width, b.kernel_size, b.pad,
-             b.pixels, b.pixel_mm, b.window_max_mm, b.slack_mm)
-    return (exact == other and np.array_equal(a.radii_mm, b.radii_mm)
-            and all(math.isclose(x, y, rel_tol=rtol) for x, y in zip(a.box_mm, b.box_mm,
-                                                                       strict=True)))
 
 
 def tolerance_analysis(scene: Scene, targets: np.ndarray, shown: list[torch.Tensor],
@@ -373,9 +359,9 @@ def tolerance_analysis(scene: Scene, targets: np.ndarray, shown: list[torch.Tens
 
     def stack_of(renderer: Renderer) -> torch.Tensor:
         """The display's stack for a sample's renderer: one built already when it pre-filters
-        the same way (`same_filter`), else its own."""
+        the same way (BOX_RTOL), else its own."""
         for shape, stack in built:
-            if same_filter(shape, renderer.shape):
+            if shape.filters_like(renderer.shape, BOX_RTOL):
                 return stack
         with torch.no_grad():
             built.append((renderer.shape, renderer.display_stack(shown[0])))
