@@ -28,9 +28,6 @@ class _Steps:
     """What the loops use of a torch.optim optimizer: `lr`, `zero_grad`, `step`, `state_dict`
     and `load_state_dict`."""
 
-    #: The per-parameter state's tensors (state_dict keys), besides Adam's "step".
-    _moments: tuple[str, ...] = ()
-
     def __init__(self, params: Sequence[torch.Tensor], lr: float) -> None:
         if not (isinstance(lr, (int, float)) and lr > 0):
             raise ValueError(f"lr = {lr!r} must be a number > 0 (the step size).")
@@ -54,7 +51,7 @@ class _Steps:
 
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Take `state_dict` output (ours or torch.optim's), its tensors copied onto each
-        parameter's device and dtype ("step" stays as saved)."""
+        parameter's device and dtype (the step count keeps its own)."""
         entries = saved["state"]
         for i, p in enumerate(self.params):
             entry = entries.get(i, {})
