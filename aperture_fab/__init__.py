@@ -14,7 +14,15 @@ command line can print its help, presets and processes without importing PyTorch
 from __future__ import annotations
 
 import importlib
+import os
 from typing import TYPE_CHECKING, Any
+
+# PyTorch's OpenMP threads spin for milliseconds after each parallel region (GNU OpenMP's
+# default), holding the cores the Numba kernels that follow run on: a seed design's kernels ran
+# at one thread's speed, 1.96 against 1.01 ms a forward (benchmarks/README.md). Passive waiting
+# gives the cores back at once. OpenMP reads it when torch loads, so it acts only where torch
+# was not imported before aperture_fab; a value already set wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 if TYPE_CHECKING:
     from aperture_fab import targets

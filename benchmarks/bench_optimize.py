@@ -666,6 +666,8 @@ def environment(device: torch.device) -> dict[str, Any]:
         "python": platform.python_version(),
         "threads": torch.get_num_threads(),
         "kernel_threads": kernels.thread_count(),
+        # The cases run in child processes, which take it from here (aperture_fab sets it).
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset"),
         "cpu_count": os.cpu_count(),
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
@@ -860,7 +862,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     env = environment(device)
     bandwidth = copy_bandwidth(QUICK_COPY_MIB if args.quick else COPY_MIB)
     copy_gbs = max(bandwidth["numpy_gbs"], bandwidth["torch_gbs"])
-    print(f"torch {env['torch']}, {env['threads']} threads (kernels {env['kernel_threads']}), "
+    print(f"torch {env['torch']}, {env['threads']} threads (kernels {env['kernel_threads']}, "
+          f"OpenMP wait policy {env['omp_wait_policy']}), "
           f"{env['cpu_count']} CPUs ({env['cpus_usable']} usable), device {env['device']} "
           f"({env['device_name']}), load average "
           f"{_number(env['load_average'][0] if env['load_average'] else None, '.1f')}, "

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import inspect
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -82,6 +83,19 @@ def test_light_public_names_do_not_import_torch() -> None:
         "print(json.dumps({'torch': 'torch' in sys.modules}))\n"
     )
     assert run_child(code) == {"torch": False}
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_import_sets_openmp_wait_policy_unless_given(given: str | None, expected: str) -> None:
+    """aperture_fab sets OMP_WAIT_POLICY before torch loads (its spinning OpenMP threads held
+    the cores from the Numba kernels); a value the user set is kept."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    code = "import aperture_fab, os; print(os.environ['OMP_WAIT_POLICY'])"
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
+                            capture_output=True, text=True, check=True, timeout=120)
+    assert result.stdout.strip() == expected
 
 
 def test_lazy_public_names_resolve_to_their_definitions() -> None:
