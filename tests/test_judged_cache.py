@@ -19,7 +19,7 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.pipeline.judged_folder import ENV_CACHE_DIR, FolderCache, default_cache
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.judged_cache import MemoryCache, digest
-from aperture_fab.validation.made_quality import MadeQuality
+from aperture_fab.validation.made_quality import MadeQuality, as_arrays, from_arrays
 from aperture_fab.validation.regular import RegularArray, elemental, regular_arrays, regular_front
 
 #: Arrays of the tiny scene's family to judge: a few lattices' worth.
@@ -69,7 +69,8 @@ def test_a_cached_front_is_the_judged_one_and_judges_nothing_again(fitted, monke
     judged = regular_front(targets, arrays, states, fit=fit, eye_level=0.001,
                            dtype=torch.float64, cache=cache, fit_key=key)
     assert len(cache.kept) == len(arrays)
-    assert all(len(kept) == (2 if fitted else 1) for kept in cache.kept.values())
+    assert all(len(from_arrays(kept) or []) == (2 if fitted else 1)
+               for kept in cache.kept.values())
 
     def refuse(*args, **kwargs):  # type: ignore[no-untyped-def]
         raise AssertionError("judged again")
@@ -111,8 +112,9 @@ def test_a_folder_keeps_judgements_whole(tmp_path: Path) -> None:
     cache = FolderCache(tmp_path / "judged")
     assert cache.get("ab" * 32) is None
     kept = [quality(0), quality(1)]
-    cache.put("ab" * 32, kept)
-    back = cache.get("ab" * 32)
+    cache.put("ab" * 32, as_arrays(kept))
+    arrays = cache.get("ab" * 32)
+    back = None if arrays is None else from_arrays(arrays)
     assert back is not None and len(back) == 2
     for a, b in zip(back, kept, strict=True):
         np.testing.assert_array_equal(a.psnr_db, b.psnr_db)
@@ -124,13 +126,13 @@ def test_a_folder_keeps_judgements_whole(tmp_path: Path) -> None:
 def test_an_unreadable_file_is_judged_again_and_replaced(tmp_path: Path, content: bytes) -> None:
     cache = FolderCache(tmp_path)
     key = "cd" * 32
-    cache.put(key, [quality(0)])
+    cache.put(key, as_arrays([quality(0)]))
     next(tmp_path.rglob("*.npz")).write_bytes(content)
     assert cache.get(key) is None
-    cache.put(key, [quality(1)])
+    cache.put(key, as_arrays([quality(1)]))
     back = cache.get(key)
     assert back is not None
-    np.testing.assert_array_equal(back[0].psnr_db, quality(1).psnr_db)
+    np.testing.assert_array_equal(back["psnr_db_0"], quality(1).psnr_db)
 
 
 def test_a_folder_that_cannot_be_written_is_no_cache(tmp_path: Path, caplog) -> None:
@@ -138,11 +140,16 @@ def test_a_folder_that_cannot_be_written_is_no_cache(tmp_path: Path, caplog) -> 
     blocker.write_text("a file where the folder would be")
     cache = FolderCache(blocker / "judged")
     with caplog.at_level(logging.WARNING):
-        cache.put("ef" * 32, [quality(0)])
-        cache.put("01" * 32, [quality(0)])
+        cache.put("ef" * 32, as_arrays([quality(0)]))
+        cache.put("01" * 32, as_arrays([quality(0)]))
     assert cache.get("ef" * 32) is None
     warned = [r for r in caplog.records if "cannot write" in r.getMessage()]
     assert len(warned) == 1 and ENV_CACHE_DIR in warned[0].getMessage()
+
+
+def test_a_record_that_is_no_judgement_reads_as_none() -> None:
+    assert from_arrays({"views": np.zeros(3)}) is None
+    assert from_arrays(as_arrays([quality(2)])) is not None
 
 
 def test_the_environment_names_the_folder(tmp_path: Path, monkeypatch) -> None:
@@ -167,8 +174,9 @@ def test_elemental_contents_come_from_the_array_alone() -> None:
 
 @pytest.mark.slow
 def test_validate_reads_what_the_design_kept(tmp_path: Path, monkeypatch) -> None:
-    """A design's report keeps the family's judgements; `validate` of the written part reads
-    them all back (no new file) and reports the same made-part block."""
+    """A design's report keeps the family's judgements and the baselines'; `validate` of the
+    written part reads them all back (no new file) and reports the same made-part block and
+    the same baselines over the eye distribution."""
     import json
 
     from aperture_fab.cli import EXIT_OK, EXIT_REPORT_FAIL, main
@@ -188,6 +196,9 @@ def test_validate_reads_what_the_design_kept(tmp_path: Path, monkeypatch) -> Non
     assert main(["validate", str(tmp_path / "d" / "plate.stl"), str(target), "--out",
                  str(tmp_path / "v"), *small]) in (EXIT_OK, EXIT_REPORT_FAIL)
     assert sorted(folder.rglob("*.npz")) == kept
-    designed, validated = (json.loads((tmp_path / name / "report.json").read_text())["made_part"]
+    designed, validated = (json.loads((tmp_path / name / "report.json").read_text())
                            for name in ("d", "v"))
-    assert designed["regular"] == validated["regular"]
+    assert designed["made_part"]["regular"] == validated["made_part"]["regular"]
+    for name in ("open", "regular_pinholes", "optimized"):
+        assert (designed["eye_distribution"]["variants"][name]
+                == validated["eye_distribution"]["variants"][name])

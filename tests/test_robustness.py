@@ -13,6 +13,8 @@ from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Eye, Scene
 from aperture_fab.targets import asymmetric_marker
+from aperture_fab.validation import robustness
+from aperture_fab.validation.judged_cache import MemoryCache
 from aperture_fab.validation.robustness import PERCENTILES, Variant, judge_eyes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -87,6 +89,31 @@ def test_judging_is_deterministic(judged):
     again = judge_eyes(scene, target, {"pinholes": variants["pinholes"]}, dtype=torch.float64,
                        count=12, map_size=5)
     np.testing.assert_array_equal(again.psnr_db["pinholes"], quality.psnr_db["pinholes"])
+
+
+def test_cached_variants_are_judged_once_and_read_back_equal(judged, monkeypatch):
+    """With a cache, every variant but the part (the first) is judged once and read back to
+    the bit; another input misses."""
+    scene, target, variants, quality = judged
+    cache = MemoryCache()
+    first = judge_eyes(scene, target, variants, dtype=torch.float64, count=12, map_size=5,
+                       cache=cache)
+    assert len(cache.kept) == 1  # "open"; the part is not kept
+
+    def refuse(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("judged again")
+
+    monkeypatch.setattr(robustness, "_judge", refuse)
+    again = judge_eyes(scene, target, variants, dtype=torch.float64, count=12, map_size=5,
+                       cache=cache)
+    for got in (first, again):
+        for figures in ("psnr_db", "ssim", "nominal_psnr_db", "pupil_psnr_db"):
+            for name in variants:
+                np.testing.assert_array_equal(getattr(got, figures)[name],
+                                              getattr(quality, figures)[name])
+    monkeypatch.undo()
+    judge_eyes(scene, target, variants, dtype=torch.float64, count=8, map_size=5, cache=cache)
+    assert len(cache.kept) == 2
 
 
 def test_judging_nothing_is_refused(judged):

@@ -58,8 +58,10 @@ from aperture_fab.pipeline.design_files import (
     part_formats,
     summary_json,
 )
+from aperture_fab.pipeline.judged_folder import default_cache
 from aperture_fab.pipeline.lattices import better_part, margin_db
 from aperture_fab.pipeline.saved import validations_of
+from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.report import Report, Verdict, eye_headline
 from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
@@ -248,7 +250,7 @@ def _design_on(
     views, metrics = evaluate(renderer, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
         "optimized": result.optimum,
-    })
+    }, default_cache() if validation is not None else None)
     timings["evaluate_s"] = time.perf_counter() - start
     start = time.perf_counter()
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
@@ -370,11 +372,12 @@ def evaluate(
     renderer: Renderer,
     targets: np.ndarray,
     variants: dict[str, tuple[np.ndarray, np.ndarray]],
+    cache: JudgedCache | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, list[float]]]]:
     """Views (T, P, C, ny, nx) through the renderer's scene and gain-corrected metrics (nominal
     eye position) for plate variants {name: (open fractions, displays)}, plus the baselines
     (`baseline_views`: the open display showing the target and a regular pinhole array showing
-    elemental images)."""
+    elemental images; cache keeps them between runs)."""
     scene, device, dtype = renderer.scene, renderer.device, renderer.dtype
     positions = range(len(scene.eye.positions_mm))
     views: dict[str, np.ndarray] = {}
@@ -386,7 +389,7 @@ def evaluate(
                           .cpu().double().numpy() for p in positions])
                 for d in displays
             ])
-    views.update(baseline_views(renderer, targets))
+    views.update(baseline_views(renderer, targets, cache))
     metrics: dict[str, dict[str, list[float]]] = {}
     for name, v in views.items():
         mse = [float(gain_mse(torch.as_tensor(v[t, 0]), torch.as_tensor(targets[t])))

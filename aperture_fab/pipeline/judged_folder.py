@@ -1,5 +1,5 @@
-"""The judged cache on disk: the regular family's judgements kept between runs
-(`aperture_fab.validation.judged_cache`), one small .npz per array, written atomically.
+"""The judged cache on disk: judgements kept between runs (`aperture_fab.validation.judged_cache`),
+one small .npz per key, written atomically.
 
 The folder is `APERTURE_FAB_CACHE_DIR` when set (`off` keeps nothing), else
 `$XDG_CACHE_HOME/aperture-fab/judged` (`~/.cache/aperture-fab/judged`). A key holds every input
@@ -14,13 +14,12 @@ import io
 import logging
 import os
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from aperture_fab.io.atomic import write_atomic
-from aperture_fab.validation.made_quality import MadeQuality
 
 __all__ = ["ENV_CACHE_DIR", "OFF", "FolderCache", "default_cache"]
 
@@ -41,27 +40,21 @@ class FolderCache:
     def _path(self, key: str) -> Path:
         return self.folder / key[:2] / f"{key}.npz"
 
-    def get(self, key: str) -> list[MadeQuality] | None:
+    def get(self, key: str) -> dict[str, np.ndarray] | None:
         path = self._path(key)
         try:
             with np.load(path, allow_pickle=False) as data:
-                return [MadeQuality(np.array(data[f"psnr_db_{i}"]), float(efficiency),
-                                    float(level))
-                        for i, (efficiency, level) in enumerate(zip(
-                            data["efficiency"], data["eye_level"], strict=True))]
+                return {name: np.array(data[name]) for name in data.files}
         except FileNotFoundError:
             return None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
             log.info("judged cache: %s is unreadable (%s); judging again", path, error)
             return None
 
-    def put(self, key: str, judged: Sequence[MadeQuality]) -> None:
+    def put(self, key: str, arrays: Mapping[str, np.ndarray]) -> None:
         if not self._writable:
             return
         buffer = io.BytesIO()
-        arrays = {f"psnr_db_{i}": q.psnr_db for i, q in enumerate(judged)}
-        arrays["efficiency"] = np.array([q.efficiency for q in judged])
-        arrays["eye_level"] = np.array([q.eye_level for q in judged])
         np.savez(buffer, allow_pickle=False, **arrays)
         path = self._path(key)
         try:

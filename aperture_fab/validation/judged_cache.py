@@ -1,4 +1,5 @@
-"""Judgements worth keeping between runs: the regular family's (`aperture_fab.validation.regular`).
+"""Judgements worth keeping between runs: the regular family's (`aperture_fab.validation.regular`)
+and the baselines' a validation renders beside the part (`aperture_fab.validation.validate`).
 
 The regular family a part is judged against depends on the process, the part's outline, the
 targets, the eye states and the fit, not on the part: a design, its `validate`, a second design
@@ -16,28 +17,26 @@ import dataclasses
 import enum
 import functools
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from aperture_fab.validation.made_quality import MadeQuality
-
-__all__ = ["JudgedCache", "MemoryCache", "code_digest", "digest"]
+__all__ = ["JudgedCache", "MemoryCache", "cached", "code_digest", "digest"]
 
 
 class JudgedCache(Protocol):
-    """Judgements by key (a `digest`): each a list of MadeQuality (the contents an array was
-    judged with, in order)."""
+    """Judgements by key (a `digest`), each a few named arrays (`made_quality.as_arrays` turns
+    MadeQuality lists into them)."""
 
-    def get(self, key: str) -> list[MadeQuality] | None:
-        """The judgements kept under `key`, or None."""
+    def get(self, key: str) -> dict[str, np.ndarray] | None:
+        """The arrays kept under `key`, or None."""
         ...
 
-    def put(self, key: str, judged: Sequence[MadeQuality]) -> None:
-        """Keep `judged` under `key`."""
+    def put(self, key: str, arrays: Mapping[str, np.ndarray]) -> None:
+        """Keep `arrays` under `key`."""
         ...
 
 
@@ -45,13 +44,30 @@ class MemoryCache:
     """A JudgedCache in memory (for one process; tests)."""
 
     def __init__(self) -> None:
-        self.kept: dict[str, list[MadeQuality]] = {}
+        self.kept: dict[str, dict[str, np.ndarray]] = {}
 
-    def get(self, key: str) -> list[MadeQuality] | None:
-        return self.kept.get(key)
+    def get(self, key: str) -> dict[str, np.ndarray] | None:
+        kept = self.kept.get(key)
+        return None if kept is None else {name: a.copy() for name, a in kept.items()}
 
-    def put(self, key: str, judged: Sequence[MadeQuality]) -> None:
-        self.kept[key] = list(judged)
+    def put(self, key: str, arrays: Mapping[str, np.ndarray]) -> None:
+        self.kept[key] = {name: np.array(a) for name, a in arrays.items()}
+
+
+def cached(cache: JudgedCache | None, compute: Callable[[], dict[str, np.ndarray]],
+           *values: Any) -> dict[str, np.ndarray]:
+    """compute()'s arrays, kept in `cache` under a `digest` of `values` (every input they
+    depend on; the first, a name for what is kept, keeps records of different kinds apart):
+    read back when kept, computed and kept when not. cache None: computed."""
+    if cache is None:
+        return compute()
+    key = digest(*values)
+    kept = cache.get(key)
+    if kept is not None:
+        return kept
+    arrays = compute()
+    cache.put(key, arrays)
+    return arrays
 
 
 def _feed(h: Any, value: Any) -> None:

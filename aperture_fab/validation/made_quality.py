@@ -15,7 +15,7 @@ as much light from it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +33,7 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.optimizer import combine_states
 
-__all__ = ["MadeQuality", "judge_made", "judge_stacks"]
+__all__ = ["MadeQuality", "as_arrays", "from_arrays", "judge_made", "judge_stacks"]
 
 #: Seed stream of the made copies (apart from the eye states').
 COPY_STREAM = 2
@@ -67,6 +67,26 @@ class MadeQuality:
         weights = torch.full((flat.shape[1],), 1.0 / flat.shape[1], dtype=flat.dtype)
         mse = [float(combine_states(row, weights, tail_share)) for row in flat]
         return -10 * np.log10(np.array(mse))
+
+
+def as_arrays(judged: Sequence[MadeQuality]) -> dict[str, np.ndarray]:
+    """Judgements as named arrays (what a `judged_cache.JudgedCache` keeps): psnr_db_<i> per
+    judgement, and their efficiencies and eye levels."""
+    arrays = {f"psnr_db_{i}": q.psnr_db for i, q in enumerate(judged)}
+    arrays["efficiency"] = np.array([q.efficiency for q in judged])
+    arrays["eye_level"] = np.array([q.eye_level for q in judged])
+    return arrays
+
+
+def from_arrays(arrays: Mapping[str, np.ndarray]) -> list[MadeQuality] | None:
+    """The judgements `as_arrays` gave these arrays, or None when they hold none (another
+    record under the key: judge again)."""
+    try:
+        return [MadeQuality(np.asarray(arrays[f"psnr_db_{i}"]), float(efficiency), float(level))
+                for i, (efficiency, level) in enumerate(zip(
+                    arrays["efficiency"], arrays["eye_level"], strict=True))]
+    except (KeyError, ValueError, TypeError):
+        return None
 
 
 def judge_stacks(renderer: Renderer, displays: np.ndarray) -> list[torch.Tensor]:

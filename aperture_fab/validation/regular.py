@@ -38,7 +38,13 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
 from aperture_fab.validation.judged_cache import JudgedCache, digest
-from aperture_fab.validation.made_quality import MadeQuality, judge_made, judge_stacks
+from aperture_fab.validation.made_quality import (
+    MadeQuality,
+    as_arrays,
+    from_arrays,
+    judge_made,
+    judge_stacks,
+)
 
 __all__ = ["RegularArray", "RegularFront", "elemental", "lattice_scene", "regular_arrays",
            "regular_front", "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
@@ -273,7 +279,8 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
     for index, regular in enumerate(arrays):
         a = regular.array.open_fraction
         key = key_of(regular) if cache is not None else ""
-        judged = cache.get(key) if cache is not None else None
+        kept = cache.get(key) if cache is not None else None
+        judged = None if kept is None else from_arrays(kept)
         if judged is None:
             if fit is not None:
                 renderer = Renderer(regular.scene, device=device, dtype=dtype,
@@ -290,7 +297,7 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
                 judged = [judge_made(renderer, targets, a, displays, regular.optics, states,
                                      copies, seed, stacks)]
             if cache is not None:
-                cache.put(key, judged)
+                cache.put(key, as_arrays(judged))
         quality = max(judged, key=lambda q: _rank(q, eye_level))
         eff.append(quality.efficiency)
         level.append(quality.eye_level)

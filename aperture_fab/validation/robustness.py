@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from aperture_fab.optics.eyes import EyeDistribution, EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open_states
 from aperture_fab.optics.scene import Scene
+from aperture_fab.validation.judged_cache import JudgedCache, cached
 
 __all__ = ["EyeQuality", "Variant", "judge_eyes", "PERCENTILES"]
 
@@ -165,13 +167,17 @@ def _sweep(lo: float, hi: float, fixed: tuple[float, float]) -> np.ndarray:
 
 def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], *,
                device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
-               count: int = EVALUATION_STATES, map_size: int = MAP_SIZE) -> EyeQuality:
+               count: int = EVALUATION_STATES, map_size: int = MAP_SIZE,
+               cache: JudgedCache | None = None) -> EyeQuality:
     """Judge variants over the scene's eye distribution.
 
     targets: (T, C, ny, nx) linear, on the view grid. variants: {name: Variant}; the first is
     the part: the eyebox map, the focus sweep (whose states away from infinity cannot share
     display samples) and the thumbnails are rendered for it alone; the percentiles, the
-    nominal figure and the pupil sweep for every variant.
+    nominal figure and the pupil sweep for every variant. cache: keeps the other variants'
+    figures between runs under a digest of their plate, display and every input (the
+    baselines', which do not depend on the part, are read back by the next validation of the
+    target).
     """
     if not variants:
         raise ValueError("judge_eyes got no variants; give at least the part.")
@@ -197,16 +203,18 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
         part = index == 0
         mapped = part and variant.open_fraction is not None
         batches = [states, nominal, pupil_states]
-        if part:
-            batches += [focus_states, thumb_states] + ([grid] if mapped else [])
-        views, nominal_views, pupil_views, *more = _views(renderer, variant, targets, batches)
-        psnr[name] = gain_psnr_db(views, targets)
-        ssim[name] = np.array([[view_metrics(v, targets[t], 1.0)["ssim"] for v in views[t]]
-                               for t in range(len(targets))])
-        nominal_psnr[name] = gain_psnr_db(nominal_views, targets)[:, 0]
-        pupil_psnr[name] = gain_psnr_db(pupil_views, targets)
         if not part:
+            figures = cached(cache, partial(_judge, renderer, variant, targets, batches),
+                             "eye judgement", scene, targets, variant, batches, dtype,
+                             torch.device(device).type)
+            psnr[name], ssim[name], nominal_psnr[name], pupil_psnr[name] = (
+                figures[key] for key in JUDGED)
             continue
+        batches += [focus_states, thumb_states] + ([grid] if mapped else [])
+        views, nominal_views, pupil_views, *more = _views(renderer, variant, targets, batches)
+        figures = _figures(views, nominal_views, pupil_views, targets)
+        psnr[name], ssim[name], nominal_psnr[name], pupil_psnr[name] = (
+            figures[key] for key in JUDGED)
         focus_psnr[name] = gain_psnr_db(more[0], targets)
         thumbs = more[1]
         thumbnails = np.clip(thumbs * gains(thumbs, targets)[..., None, None, None], 0, 1)
@@ -217,6 +225,28 @@ def judge_eyes(scene: Scene, targets: np.ndarray, variants: dict[str, Variant], 
     offsets = grid_offsets(distribution, map_size)
     return EyeQuality(distribution, states, psnr, ssim, nominal_psnr, offsets, inside, map_psnr,
                       pupils, pupil_psnr, focus, focus_psnr, thumb_offsets, thumbnails)
+
+
+#: A variant's figures over the states of `judge_eyes` (each (T, S), nominal (T,)).
+JUDGED = ("psnr_db", "ssim", "nominal_psnr_db", "pupil_psnr_db")
+
+
+def _figures(views: np.ndarray, nominal_views: np.ndarray, pupil_views: np.ndarray,
+             targets: np.ndarray) -> dict[str, np.ndarray]:
+    """A variant's JUDGED figures from its views of the states, the nominal state and the
+    pupil sweep (each (T, S, C, ny, nx))."""
+    ssim = np.array([[view_metrics(v, targets[t], 1.0)["ssim"] for v in views[t]]
+                     for t in range(len(targets))])
+    return dict(zip(JUDGED, (gain_psnr_db(views, targets), ssim,
+                             gain_psnr_db(nominal_views, targets)[:, 0],
+                             gain_psnr_db(pupil_views, targets)), strict=True))
+
+
+def _judge(renderer: Renderer, variant: Variant, targets: np.ndarray,
+           batches: Sequence[EyeStates]) -> dict[str, np.ndarray]:
+    """`_figures` of a variant rendered for batches (states, nominal, pupil sweep)."""
+    views, nominal_views, pupil_views = _views(renderer, variant, targets, batches)
+    return _figures(views, nominal_views, pupil_views, targets)
 
 
 def grid_offsets(distribution: EyeDistribution, map_size: int) -> np.ndarray:

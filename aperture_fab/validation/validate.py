@@ -49,6 +49,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -69,7 +70,7 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer, StackShape
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.optics.scene import Eye, Plate, Scene, open_fraction_of
-from aperture_fab.validation.judged_cache import JudgedCache
+from aperture_fab.validation.judged_cache import JudgedCache, cached
 from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
@@ -126,12 +127,19 @@ def _render_all(renderer: Renderer, a: np.ndarray, displays: list[torch.Tensor],
 BASELINES = ("open", "regular_pinholes")
 
 
-def baseline_views(renderer: Renderer, targets: np.ndarray) -> dict[str, np.ndarray]:
+def baseline_views(renderer: Renderer, targets: np.ndarray, cache: JudgedCache | None = None
+                   ) -> dict[str, np.ndarray]:
     """The baselines' views (T, P, C, ny, nx) at every eye position of the renderer's scene:
     the open display showing each target ("open", the best it can do without a plate) and the
     regular pinhole array showing its elemental images ("regular_pinholes").
 
-    targets: (T, C, ny, nx) linear, on the view grid."""
+    targets: (T, C, ny, nx) linear, on the view grid. cache: keeps them between runs (they
+    depend on the scene and the targets alone)."""
+    return cached(cache, partial(_baseline_views, renderer, targets), "baseline views",
+                  renderer.scene, targets, renderer.dtype, renderer.device.type)
+
+
+def _baseline_views(renderer: Renderer, targets: np.ndarray) -> dict[str, np.ndarray]:
     scene, dtype, device = renderer.scene, renderer.dtype, renderer.device
     positions = range(len(scene.eye.positions_mm))
     on_display = [torch.as_tensor(resample(t, scene.display.pixels), dtype=dtype, device=device)
@@ -173,7 +181,9 @@ def validate(
     mesh: the mesh as written and re-read (default: part.mesh).
     baselines: `baseline_views` of these targets when the caller rendered them already (the
     design job has); None renders them.
-    cache: keeps the regular family's judgements between runs (`made_part_block`).
+    cache: keeps what does not depend on the part between runs: the regular family's
+    judgements (`made_part_block`), the baselines' views and their figures over the eye
+    distribution (`judge_eyes`), the random mask's views.
     """
     scene = config.scene
     device = resolve_device(config.optimizer.device)
@@ -190,9 +200,11 @@ def validate(
     rng = np.random.default_rng(settings.seed)
     quantized = layout_fractions(part.layout)
     as_built = layout_fractions(part.layout, process.radius_bias_mm)
-    views = dict(baseline_views(renderer, targets) if baselines is None else baselines)
+    views = dict(baseline_views(renderer, targets, cache) if baselines is None else baselines)
     random_mask = rng.uniform(0, scene.plate.max_open_fraction, open_fraction.shape)
-    views["random"] = _render_all(renderer, random_mask, on_display, positions)
+    views["random"] = cached(
+        cache, lambda: {"views": _render_all(renderer, random_mask, on_display, positions)},
+        "random mask views", scene, random_mask, on_display, dtype, device.type)["views"]
     views["optimized"] = _render_all(renderer, open_fraction, designed, positions)
     views["quantized"] = _render_all(renderer, quantized, shown, positions)
     views["as_built"] = _render_all(renderer, as_built, shown, positions)
@@ -236,7 +248,7 @@ def validate(
             "regular_pinholes": Variant(pinholes.open_fraction, np.stack([
                 elemental_display(scene, pinholes, torch.as_tensor(t, dtype=dtype, device=device))
                 .cpu().double().numpy() for t in targets])),
-        }, device=device, dtype=dtype, count=settings.eye_states)
+        }, device=device, dtype=dtype, count=settings.eye_states, cache=cache)
         timings["eye_distribution_s"] = time.perf_counter() - start
     made_part = None
     if settings.eye_states > 0 and settings.made_copies > 0:
