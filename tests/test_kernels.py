@@ -19,6 +19,7 @@ from aperture_fab.optics.kernel_pair import (
     EMISSION,
     LENS_R,
     lens_radius,
+    pair_chord,
     pair_geometry,
 )
 from aperture_fab.optics.kernel_stack import UNROLLED_CHANNELS
@@ -251,6 +252,29 @@ def _pairs_one_by_one(radius, geometry, offsets, states, v_x, v_y, pairs):
         out[LENS_R, p] = lens_radius(values[4])
         out[EMISSION, p] = values[10]
     return out
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), states=st.integers(1, 40), cells=st.integers(1, 12))
+def test_the_row_chords_loop_is_pair_chord(seed, states, cells):
+    """The walk's SIMD loop over the states' chords of a row (`kernels._row_chords`) gives
+    `pair_chord`'s columns for every state: spans inside, across and off the plate, radii that
+    miss the row, inner radii that are not positive (no inner chord)."""
+    rng = np.random.default_rng(seed)
+    geometry = np.zeros(len(kernels.GEOMETRY_FIELDS))
+    geometry[:4] = cells, cells + rng.integers(0, 3), *rng.uniform(0.2, 0.8, 2)
+    spans = np.zeros((kernels._SPAN, states))
+    spans[0:2] = rng.uniform(-0.7, 0.7, (2, states)) * cells * geometry[2:4, None]
+    spans[2] = rng.uniform(0.0, 0.6, states) * cells * geometry[2]
+    spans[3] = spans[2] - rng.uniform(-0.2, 1.5, states) * geometry[2]
+    chords = np.zeros((kernels._CHORD, states), dtype=np.int64)
+    for i in range(int(geometry[1])):
+        kernels._row_chords(geometry, spans, states, i, chords)
+        for k in range(states):
+            ox, oy, outer, inner = spans[:4, k]
+            assert tuple(chords[:2, k]) == pair_chord(geometry, ox, oy, outer, i)
+            expected = pair_chord(geometry, ox, oy, inner, i) if inner > 0 else (0, -1)
+            assert tuple(chords[2:, k]) == expected
 
 
 @settings(max_examples=25, deadline=None)

@@ -48,7 +48,6 @@ from aperture_fab.optics.kernel_pair import (
     asin_ratio,
     inline_jit,
     lens_radius,
-    pair_chord,
     pair_geometry,
     pair_window,
     pupil_share,
@@ -133,6 +132,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
         slopes = np.zeros((size, channels))
         evals = np.empty((width, size), dtype=np.int64)
         lengths = np.empty(width, dtype=np.int64)
+        spans = np.empty((_SPAN, width))
+        chords = np.empty((_CHORD, width), dtype=np.int64)
         acc = np.zeros(channels)
         v_y = vy[iy]
         for ix in range(vx.shape[0]):
@@ -141,7 +142,8 @@ def view_forward(radius, stack, vx, vy, states, geometry, offsets, extra, box, s
             for g in range(groups):
                 s0 = 0 if shared else g
                 filled = _walk(geometry, states, s0, s0 + width, v_x, v_y, margin, extra, shared,
-                               next_open, box, origin_r, origin_c, slot, pairs, evals, lengths)
+                               next_open, box, origin_r, origin_c, slot, pairs, evals, lengths,
+                               spans, chords)
                 _fill(geo, samples, slopes, inputs, stack, radius, geometry, offsets, states, s0,
                       v_x, v_y, shared, pairs, filled)
                 for s in range(s0, s0 + width):
@@ -193,6 +195,8 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
         slopes = np.zeros((size, channels))
         evals = np.empty((width, size), dtype=np.int64)
         lengths = np.empty(width, dtype=np.int64)
+        spans = np.empty((_SPAN, width))
+        chords = np.empty((_CHORD, width), dtype=np.int64)
         g_sample = np.zeros((size, channels))  # d loss / d sample, summed over states
         g_area = np.zeros(size)  # d loss / d area through the pupil shares
         used = np.zeros(size, dtype=np.bool_)
@@ -205,7 +209,7 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                     s0 = 0 if shared else g
                     filled = _walk(geometry, states, s0, s0 + width, v_x, v_y, margin, extra,
                                    shared, next_open, box, origin_r, origin_c, slot, pairs,
-                                   evals, lengths)
+                                   evals, lengths, spans, chords)
                     _fill(geo, samples, slopes, inputs, stack, radius, geometry, offsets, states,
                           s0, v_x, v_y, shared, pairs, filled)
                     for s in range(s0, s0 + width):
@@ -244,6 +248,11 @@ def view_backward(radius, stack, vx, vy, states, geometry, offsets, extra, box, 
                                     g_sample, g_area, lscale, pairs[p, 2], p)
 
 
+#: Rows of the walk's per-state spans (`_span`: centre x, y, outer and inner radius, first and
+#: last row) and of a row's chords (outer first and last column, inner first and last).
+_SPAN = 6
+_CHORD = 4
+
 #: Rows of a view pixel's gathered pair inputs (`_fill`): the undisplaced hole centre x, y,
 #: its displacement x, y (mm) and its radius (mm).
 _INPUTS = 5
@@ -251,40 +260,93 @@ _INPUTS = 5
 
 @inline_jit
 def _walk(geometry, states, s0, s1, v_x, v_y, margin, extra, shared, next_open, box, origin_r,
-          origin_c, slot, pairs, evals, lengths):
+          origin_c, slot, pairs, evals, lengths, spans, chords):
     """The pairs states s0 to s1 - 1 reach for one view direction. Each pair once, in walk
     order, as pairs[p] = (row i, column j, hole index k); each state's in
     evals[s - s0, :lengths[s - s0]] as 2 p + 1 when its lens lies wholly inside the pupil,
-    else 2 p. Returns the number of pairs."""
+    else 2 p, row by row. The states' chords of a row come from one SIMD loop (`_row_chords`;
+    per state and row they cost as much as a row's holes when states are many: 9 % of a
+    32-state forward). spans (_SPAN, S) and chords (_CHORD, S): scratch. Returns the number
+    of pairs."""
     slot[:] = -1
     filled = 0
+    n = s1 - s0
+    r_lo = 1 << 30
+    r_hi = -1
     for s in range(s0, s1):
         fx = states[s, 0] + geometry[9] * v_x
         fy = states[s, 1] + geometry[9] * v_y
         ox, oy, outer, inner, r0, r1 = _span(geometry, fx, fy, v_x, v_y, states[s, 7],
                                              states[s, 2], margin, extra, shared)
-        length = 0
-        for i in range(r0, r1 + 1):
-            c0, c1 = pair_chord(geometry, ox, oy, outer, i)
-            ci0, ci1 = _inner_chord(geometry, ox, oy, inner, i)
+        k = s - s0
+        spans[0, k] = ox
+        spans[1, k] = oy
+        spans[2, k] = outer
+        spans[3, k] = inner
+        spans[4, k] = r0
+        spans[5, k] = r1
+        lengths[k] = 0
+        r_lo = min(r_lo, r0)
+        r_hi = max(r_hi, r1)
+    for i in range(r_lo, r_hi + 1):
+        _row_chords(geometry, spans, n, i, chords)
+        for k in range(n):
+            if i < spans[4, k] or i > spans[5, k]:
+                continue
+            c0 = chords[0, k]
+            c1 = chords[1, k]
+            ci0 = chords[2, k]
+            ci1 = chords[3, k]
+            length = lengths[k]
             j = c0 - 1
             while j < c1:  # the open holes of columns c0 to c1
                 j = next_open[i, j + 1]
                 if j > c1:
                     break
-                n = (i - origin_r) * box + (j - origin_c)
-                p = slot[n]
+                m = (i - origin_r) * box + (j - origin_c)
+                p = slot[m]
                 if p < 0:
                     p = filled
-                    slot[n] = p
+                    slot[m] = p
                     pairs[p, 0] = i
                     pairs[p, 1] = j
                     pairs[p, 2] = int(i * geometry[0] + j)
                     filled += 1
-                evals[s - s0, length] = 2 * p + (1 if ci0 <= j <= ci1 else 0)
+                evals[k, length] = 2 * p + (1 if ci0 <= j <= ci1 else 0)
                 length += 1
-        lengths[s - s0] = length
+            lengths[k] = length
     return filled
+
+
+@_serial
+def _row_chords(geometry, spans, n, i, chords):
+    """Columns (first, last) of hole row i within each of n states' spans (`_span`): whose axis
+    lies within the outer radius (chords[0:2]) and within the inner one (chords[2:4]; none when
+    it is not positive), as `kernel_pair.pair_chord` gives them one by one (empty: 0, -1), in
+    one loop LLVM runs in SIMD lanes."""
+    ncx = geometry[0]
+    dy0 = ((geometry[1] - 1) / 2 - i) * geometry[3]
+    mid = (ncx - 1) / 2
+    last = ncx - 1
+    for k in range(n):
+        ox = spans[0, k]
+        dy = dy0 - spans[1, k]
+        outer = spans[2, k]
+        inner = spans[3, k]
+        ho = outer * outer - dy * dy
+        hi = inner * inner - dy * dy
+        so = math.sqrt(max(ho, 0.0))
+        si = math.sqrt(max(hi, 0.0))
+        a0 = max(0.0, math.ceil((ox - so) / geometry[2] + mid))
+        a1 = min(last, math.floor((ox + so) / geometry[2] + mid))
+        b0 = max(0.0, math.ceil((ox - si) / geometry[2] + mid))
+        b1 = min(last, math.floor((ox + si) / geometry[2] + mid))
+        okay = ho > 0.0
+        inside = (inner > 0.0) & (hi > 0.0)
+        chords[0, k] = int(a0) if okay else 0
+        chords[1, k] = int(a1) if okay else -1
+        chords[2, k] = int(b0) if inside else 0
+        chords[3, k] = int(b1) if inside else -1
 
 
 @inline_jit
@@ -434,13 +496,6 @@ def _span(geometry, fx, fy, vx, vy, keep, pupil_b, margin, extra, shared):
     r0 = max(0, math.ceil((ncy - 1) / 2 - (oy + outer) / geometry[3]))
     r1 = min(int(ncy) - 1, math.floor((ncy - 1) / 2 - (oy - outer) / geometry[3]))
     return ox, oy, outer, inner, int(r0), int(r1)
-
-
-@inline_jit
-def _inner_chord(geometry, ox, oy, inner, i):
-    if inner <= 0.0:
-        return 0, -1
-    return pair_chord(geometry, ox, oy, inner, i)
 
 
 @inline_jit
