@@ -264,10 +264,9 @@ def _walk(geometry, states, s0, s1, v_x, v_y, margin, extra, shared, next_open, 
     """The pairs states s0 to s1 - 1 reach for one view direction. Each pair once, in walk
     order, as pairs[p] = (row i, column j, hole index k); each state's in
     evals[s - s0, :lengths[s - s0]] as 2 p + 1 when its lens lies wholly inside the pupil,
-    else 2 p, row by row. The states' chords of a row come from one SIMD loop (`_row_chords`;
-    per state and row they cost as much as a row's holes when states are many: 9 % of a
-    32-state forward). spans (_SPAN, S) and chords (_CHORD, S): scratch. Returns the number
-    of pairs."""
+    else 2 p, row by row. The states' chords of a row come from one SIMD loop (`_row_chords`:
+    state by state they cost about a tenth of a 32-state forward). spans (_SPAN, S) and chords
+    (_CHORD, S): scratch. Returns the number of pairs."""
     slot[:] = -1
     filled = 0
     n = s1 - s0

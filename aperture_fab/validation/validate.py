@@ -136,7 +136,13 @@ def baseline_views(renderer: Renderer, targets: np.ndarray, cache: JudgedCache |
     targets: (T, C, ny, nx) linear, on the view grid. cache: keeps them between runs (they
     depend on the scene and the targets alone)."""
     return cached(cache, partial(_baseline_views, renderer, targets), "baseline views",
-                  renderer.scene, targets, renderer.dtype, renderer.device.type)
+                  targets, *_renderer_key(renderer))
+
+
+def _renderer_key(renderer: Renderer) -> tuple[Any, ...]:
+    """What a renderer's views depend on besides the plate and the display."""
+    return (renderer.scene, renderer.hole_offset_mm, renderer.oversample, renderer.backend,
+            renderer.dtype, renderer.device.type)
 
 
 def _baseline_views(renderer: Renderer, targets: np.ndarray) -> dict[str, np.ndarray]:
@@ -204,7 +210,7 @@ def validate(
     random_mask = rng.uniform(0, scene.plate.max_open_fraction, open_fraction.shape)
     views["random"] = cached(
         cache, lambda: {"views": _render_all(renderer, random_mask, on_display, positions)},
-        "random mask views", scene, random_mask, on_display, dtype, device.type)["views"]
+        "random mask views", random_mask, on_display, *_renderer_key(renderer))["views"]
     views["optimized"] = _render_all(renderer, open_fraction, designed, positions)
     views["quantized"] = _render_all(renderer, quantized, shown, positions)
     views["as_built"] = _render_all(renderer, as_built, shown, positions)
