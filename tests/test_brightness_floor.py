@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from conftest import tiny_config
@@ -14,12 +15,20 @@ from aperture_fab.config import resolve
 from aperture_fab.config.presets import LIGHT_FLOOR
 from aperture_fab.config.stages import FabricationSettings
 from aperture_fab.fabrication.process import resolve_process
+from aperture_fab.optics.as_made import white_transmission
+from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.open_view import render_open
 from aperture_fab.optimize.optimizer import (
     EYE_FLOOR_HEADROOM,
     EYE_FLOOR_MEMORY,
+    FLOOR_AIM,
+    FLOOR_WEIGHT,
+    LIGHT_VIEW_PIXELS,
+    _design_loss,
     _hold_eye_floor,
+    light_renderer,
+    training_states,
 )
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import digit
@@ -46,6 +55,54 @@ def test_the_floor_holds_and_costs_quality() -> None:
     assert efficiency(free, plain) < 0.02  # the floor binds: the free design is darker
     assert efficiency(floored, bright) >= 0.02 * (1 - FLOOR_SLACK)
     assert bright.metrics["optimized"]["psnr_db"][0] < plain.metrics["optimized"]["psnr_db"][0]
+
+
+@pytest.mark.parametrize("tail_share", [0.5, 1.0])
+def test_the_efficiency_floor_holds_the_states_mean_white_efficiency(tail_share: float) -> None:
+    """The floor's penalty is FLOOR_WEIGHT (1 - E / (FLOOR_AIM floor))^2 with E the states'
+    weighted mean light efficiency (each state's view of a white display, rendered here on its
+    own), and nothing above that however dim a state is, or the content: the report judges E."""
+    scene = tiny_config().scene
+    renderer = Renderer(scene, dtype=torch.float64)
+    rng = np.random.default_rng(3)
+    a = torch.as_tensor(rng.uniform(0.05, 0.4, (scene.plate.cells[1], scene.plate.cells[0])))
+    pixels = scene.display.pixels[::-1]
+    display = torch.as_tensor(rng.uniform(0.0, 0.2, (3, *pixels)))  # a dark content
+    target = torch.as_tensor(rng.uniform(0.0, 1.0, (1, 3, *scene.eye.view_pixels[::-1])))
+    # an eye off to the side sees less of the display: a dimmer state
+    states = EyeStates(np.array([[0.0, 0.0], [1.5, 0.5], [-0.3, 0.2]]), np.array([4.0, 3.0, 5.0]),
+                       np.zeros(3), np.zeros((3, 2)), np.array([0.5, 0.3, 0.2]))
+    with torch.no_grad():
+        white = renderer.render_states(a, renderer.display_stack(torch.ones(1, *pixels)), states)
+    each = white.mean((1, 2, 3)).numpy()
+    mean = float((each * states.weight).sum())
+    assert each.min() < 0.9 * mean  # a per-state floor between them would bind
+
+    def penalty(floor: float) -> float:
+        loss = [float(_design_loss(renderer, a, display[None], target, states, 0.0, tail_share,
+                                   min_efficiency=f)) for f in (floor, 0.0)]
+        return loss[0] - loss[1]
+
+    assert penalty((each.min() + mean) / 2) == 0.0
+    floor = 1.25 * mean
+    want = FLOOR_WEIGHT * (1 - mean / (FLOOR_AIM * floor)) ** 2
+    assert penalty(floor) == pytest.approx(want, rel=1e-9)
+
+
+def test_the_floor_measures_the_light_on_a_coarse_view_as_well_as_on_the_full_one() -> None:
+    """The light efficiency per eye state from `light_renderer` (the near-eye preset's 128 x 128
+    view cut to LIGHT_VIEW_PIXELS per axis) is the full view's within 0.2 %."""
+    config = resolve("near-eye")
+    renderer = Renderer(config.scene)
+    light = light_renderer(renderer)
+    assert light.scene.eye.view_pixels == (LIGHT_VIEW_PIXELS, LIGHT_VIEW_PIXELS)
+    assert light.scene.eye.fov_deg == renderer.scene.eye.fov_deg
+    cells = (config.scene.plate.cells[1], config.scene.plate.cells[0])
+    a = torch.as_tensor(np.random.default_rng(4).uniform(0.0, 0.3, cells), dtype=torch.float32)
+    states = training_states(config.scene, config.optimizer, 7)
+    full, coarse = (white_transmission(r, a, states) for r in (renderer, light))
+    torch.testing.assert_close(coarse, full, rtol=2e-3, atol=0.0)
+    assert light_renderer(light) is light  # a view that small is kept
 
 
 def eye_level(config, result) -> float:  # type: ignore[no-untyped-def]

@@ -50,9 +50,10 @@ class OptimizerSettings:
         mask, the dissertation's start) or "uniform" (every hole half open).
     display: "optimized" (display content optimized with the plate) or "target" (shown as is).
     efficiency_weight: weight of the light-efficiency term (0 ignores the light level).
-    min_efficiency: a brightness floor: the light efficiency (view mean / the open display's)
-        each eye state must keep, enforced by a penalty that dominates the image loss below it;
-        0 sets no floor.
+    min_efficiency: a brightness floor: the plate's light efficiency as made (its view of a
+        uniform white display over the open display's), the mean over each iteration's eye
+        states, as the report judges it; enforced by a penalty that dominates the image loss
+        below it, from a quarter of the iterations on; 0 sets no floor.
     min_eye_level: a floor on the light at the eye: the mean view of the design's display
         content over each iteration's eye states, as a share of the panel's full white (the
         panel's luminance times it is the luminance at the eye: 0.01 of a 500 cd/m2 panel is

@@ -28,7 +28,7 @@ from aperture_fab.optics.leakage import veil
 from aperture_fab.optics.model import Renderer
 
 __all__ = ["MadeOptics", "MadeDraw", "draw_errors", "drawn_fractions", "made_views",
-           "made_views_and_white", "white_transmission"]
+           "made_views_and_white", "made_white", "white_transmission"]
 
 
 @dataclass(frozen=True)
@@ -151,11 +151,18 @@ def _finish(views: torch.Tensor, a: torch.Tensor, display: torch.Tensor, optics:
     return views + veil(a, display.to(views), optics.solid_transmission), views
 
 
+def made_white(renderer: Renderer, open_fraction: torch.Tensor, states: EyeStates,
+               draw: MadeDraw | None = None) -> torch.Tensor:
+    """(S,) a made copy's light efficiency per eye state, independent of content and
+    differentiable in open_fraction: its mean view of a uniform white display through the
+    copy's holes (the open display's view of it is 1). draw: the copy's errors (None: the
+    nominal copy)."""
+    views, _ = _render_copy(renderer, open_fraction, renderer.white_stack(), states, draw)
+    return views.mean((1, 2, 3))
+
+
 def white_transmission(renderer: Renderer, open_fraction: torch.Tensor, states: EyeStates
                        ) -> torch.Tensor:
-    """(S,) the plate's light efficiency per eye state, independent of content: the mean view
-    of a uniform white display through the holes (the open display's view of it is 1)."""
+    """(S,) the plate's light efficiency per eye state (`made_white` of the nominal copy)."""
     with torch.no_grad():
-        views = renderer.render_states(open_fraction.to(renderer.device, renderer.dtype),
-                                       renderer.white_stack(), states)
-    return views.mean((1, 2, 3))
+        return made_white(renderer, open_fraction.to(renderer.device, renderer.dtype), states)
