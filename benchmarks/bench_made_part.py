@@ -21,7 +21,7 @@ sqrt(2) ladder of the hole sizes the process makes in such a cell, first with el
 holes at least as bright; the --rivals best of them) again with their display fitted like the
 part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from the elemental
 images; each rival judged after half and all of them, at its best: `RIVAL_FIT_SHARES`):
-`made_part_block`, as the report does it with fewer rivals. The margin is the part's p10 less
+`made_part_block`, as the report does it with more eye states. The margin is the part's p10 less
 the best rival's p10 at equal or more light at the eye.
 
 Also: the tolerance yield of the report (`validation.validate.tolerance_analysis`: process and
@@ -60,7 +60,11 @@ from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
+from aperture_fab.validation.made_part import (
+    FITTED_RIVALS,
+    RIVAL_FIT_ITERATIONS,
+    made_part_block,
+)
 from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
@@ -184,9 +188,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--tolerance-samples", type=int, default=TOLERANCE_SAMPLES,
                         help="draws of the tolerance yield (the report's 16 pin a yield loosely: "
                         "64 give a 90 %% interval of about +-6 points at 90 %%)")
-    parser.add_argument("--rivals", type=int, default=6,
+    parser.add_argument("--rivals", type=int, default=FITTED_RIVALS,
                         help="regular rivals at least as bright at the eye whose display is "
-                        "fitted")
+                        "fitted (default: the report's)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--plot", type=Path, default=None, help="folder for the front plots")
