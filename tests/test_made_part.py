@@ -28,6 +28,7 @@ from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.targets import EXAMPLES, digit
+from aperture_fab.validation.light import lower_floor_fix
 from aperture_fab.validation.made_quality import MadeQuality, judge_made
 from aperture_fab.validation.regular import (
     RegularArray,
@@ -38,6 +39,7 @@ from aperture_fab.validation.regular import (
 )
 from aperture_fab.validation.validate import layout_fractions
 from aperture_fab.validation.verdicts import (
+    FLOOR_BINDS,
     LATTICE_FIX_BELOW_DB,
     MADE_MARGIN_DB,
     RETRY_LATTICE_BELOW_DB,
@@ -296,6 +298,19 @@ def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch
     else:
         assert len(named) == 1 and flags in named[0]
     assert not any("more iterations" in fix for fix in fixes)
+
+
+@pytest.mark.parametrize(("efficiency", "named"), [(0.02, True), (FLOOR_BINDS * 0.02, True),
+                                                  (0.027, False)])
+def test_lowering_the_floor_is_proposed_only_where_the_part_sits_at_it(efficiency, named):
+    """A part well above its brightness floor (2 %) was not shaped by it."""
+    found = block(1.0)
+    found["part"]["efficiency"] = efficiency
+    report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
+                             config={"optimizer": {"min_efficiency": 0.02}},
+                             fabrication={"process": "photomask"}, checked_part=None, run=None)
+    fixes = made_verdict(found, report).fixes
+    assert (lower_floor_fix(0.02) in fixes) == named
 
 
 @pytest.mark.parametrize(("lattice", "checked_part", "margin", "named"), [
