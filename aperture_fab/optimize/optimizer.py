@@ -231,8 +231,8 @@ def light_renderer(renderer: Renderer) -> Renderer:
     """A renderer of the same scene and settings with at most LIGHT_VIEW_PIXELS view pixels
     per axis: the light efficiency (a white view's mean) needs no finer view."""
     eye = renderer.scene.eye
-    pixels = (min(eye.view_pixels[0], LIGHT_VIEW_PIXELS), min(eye.view_pixels[1],
-                                                               LIGHT_VIEW_PIXELS))
+    nx, ny = eye.view_pixels
+    pixels = (min(nx, LIGHT_VIEW_PIXELS), min(ny, LIGHT_VIEW_PIXELS))
     if pixels == eye.view_pixels:
         return renderer
     scene = replace(renderer.scene, eye=replace(eye, view_pixels=pixels))
