@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
-     [--copies 4] [--fit-iterations 20] [--quick] [--json PATH] [--plot DIR]
+     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--quick] [--json PATH] [--plot DIR]
 
 For each target: the design job's `design` (optimize, quantize, build) with the preset and its
 process, then everything judged the one way the report judges the made part
@@ -17,10 +17,12 @@ the goal wants photopic: at least 5 cd/m2).
 The regular family (`aperture_fab.validation.regular`): every lattice pitch up to 3 mm (a
 multiple of 0.25 mm, each on its own plate of cells that large over the part's outline) with a
 sqrt(2) ladder of the hole sizes the process makes in such a cell, first with elemental images
-(fast, every array), then the rivals at the part's light at the eye (per pitch, the two smallest
-holes at least as bright; the --rivals best of them) again with their display fitted like the
+(fast, every array), then the arrays at least as bright at the eye as the part at the
+--rival-pitches pitches the first pass liked best, again with their display fitted like the
 part's (`fit_display`, --fit-iterations of Adam on the same as-made loss, from the elemental
-images; each rival judged after half and all of them, at its best: `RIVAL_FIT_SHARES`):
+images; each rival judged after half and all of them, at its best: `RIVAL_FIT_SHARES`),
+climbing over hole sizes from the first pass's best while the fitted p10 rises
+(`aperture_fab.validation.rival_search`):
 `made_part_block`, as the report does it with more eye states. The margin is the part's p10 less
 the best rival's p10 at equal or more light at the eye.
 
@@ -60,18 +62,15 @@ from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
-from aperture_fab.validation.made_part import (
-    FITTED_RIVALS,
-    RIVAL_FIT_ITERATIONS,
-    made_part_block,
-)
+from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
 from aperture_fab.validation.regular import lattice_scene
+from aperture_fab.validation.rival_search import RIVAL_PITCHES
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")
 QUICK = {"targets": ["digit-3"], "iterations": 10, "states": 8, "copies": 2,
-         "fit_iterations": 5, "front_states": 4, "rivals": 1}
+         "fit_iterations": 5, "front_states": 4, "rival_pitches": 1}
 GOAL_MARGIN_DB, GOAL_YIELD, GOAL_EFFICIENCY, GOAL_AGREEMENT_DB = 4.0, 0.9, 0.02, 0.5
 #: Last optimizer iterations whose loss is averaged for its figure (one iteration's 8 states
 #: and one made copy are a noisy sample).
@@ -133,7 +132,7 @@ def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str
     shown = result.design.displays if result.built_displays is None else result.built_displays
     made = layout_fractions(result.part.layout, process.radius_bias_mm)
     block = made_part_block(scene, config.optimizer, targets, made, shown, process,
-                            states=args.states, copies=args.copies, rivals=args.rivals,
+                            states=args.states, copies=args.copies, rival_pitches=args.rival_pitches,
                             fit_iterations=args.fit_iterations, family_states=args.front_states)
     tolerance = tolerance_analysis(config.scene, targets, [torch.as_tensor(shown[0])],
                                    result.part.layout, process,
@@ -188,9 +187,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--tolerance-samples", type=int, default=TOLERANCE_SAMPLES,
                         help="draws of the tolerance yield (the report's 16 pin a yield loosely: "
                         "64 give a 90 %% interval of about +-6 points at 90 %%)")
-    parser.add_argument("--rivals", type=int, default=FITTED_RIVALS,
-                        help="regular rivals at least as bright at the eye whose display is "
-                        "fitted (default: the report's)")
+    parser.add_argument("--rival-pitches", type=int, default=RIVAL_PITCHES,
+                        help="lattice pitches whose hole sizes are climbed with a fitted "
+                        "display (default: the report's)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--plot", type=Path, default=None, help="folder for the front plots")

@@ -35,8 +35,8 @@ from aperture_fab.validation.regular import (
     RegularFront,
     regular_arrays,
     regular_front,
-    rivals_at,
 )
+from aperture_fab.validation.rival_search import climb_rivals
 from aperture_fab.validation.validate import layout_fractions
 from aperture_fab.validation.verdicts import (
     FLOOR_BINDS,
@@ -88,20 +88,60 @@ def test_best_at_is_the_brute_force_best_at_least_as_bright(case):
         assert value == max(p10[i] for i, x in enumerate(eff) if x >= e)
 
 
-@settings(max_examples=40, deadline=None)
-@given(fronts)
-def test_rivals_are_the_smallest_bright_holes_per_pitch(case):
-    eff, p10, pitch, light = case
-    front = make_front(eff, p10, pitch)
-    rivals = rivals_at(front, light, per_pitch=1)
-    for p in set(pitch):
-        bright = [i for i in range(len(eff)) if pitch[i] == p and eff[i] >= light * (1 - 1e-9)]
-        chosen = [i for i in rivals if pitch[i] == p]
-        if not bright:
-            assert not chosen
-            continue
-        assert len(chosen) == 1
-        assert front.diameter_mm[chosen[0]] == min(front.diameter_mm[i] for i in bright)
+def ladder_front(elemental: list[list[float]], light: list[list[float]]) -> RegularFront:
+    """A family of len(elemental) pitches (1, 2, ... mm), pitch k with holes 0.1, 0.2, ... mm
+    whose elemental p10 is elemental[k] and light at the eye light[k]."""
+    pitch = [float(k + 1) for k, row in enumerate(elemental) for _ in row]
+    diameter = [0.1 * (j + 1) for row in elemental for j in range(len(row))]
+    p = np.array([v for row in elemental for v in row])[:, None]
+    level = np.array([v for row in light for v in row])
+    return RegularFront(np.array(pitch), np.array(diameter), level, level, p, p + 1, p + 2)
+
+
+#: Per pitch: hole sizes, the fitted p10's peak among them, and each size's elemental p10.
+ladders = st.lists(st.integers(1, 7).flatmap(lambda n: st.tuples(
+    st.integers(0, n - 1), st.lists(st.floats(5.0, 30.0), min_size=n, max_size=n),
+    st.lists(st.floats(1e-3, 1.0), min_size=n, max_size=n))), min_size=1, max_size=5)
+
+
+@settings(max_examples=80, deadline=None)
+@given(ladders, st.floats(0.0, 0.8), st.integers(1, 5))
+def test_the_climb_finds_each_climbed_pitchs_peak(case, light, pitches):
+    """With a fitted p10 that rises to one peak over a pitch's hole sizes and falls after it,
+    the climb judges only bright arrays, of the `pitches` pitches the elemental pass ranks
+    first, each once, and finds each one's best bright size: the brute-force best of them."""
+    front = ladder_front([row for _, row, _ in case], [level for _, _, level in case])
+    peaks = {k + 1.0: peak for k, (peak, _, _) in enumerate(case)}
+    size_of = np.rint(front.diameter_mm / 0.1).astype(int) - 1
+
+    def fitted_p10(i: int) -> float:  # unimodal in the hole size, distinct values
+        return 40.0 - abs(size_of[i] - peaks[front.pitch_mm[i]]) - 0.01 * size_of[i]
+
+    calls: list[int] = []
+
+    def judge(i: int) -> float:
+        calls.append(i)
+        return fitted_p10(i)
+
+    chosen = climb_rivals(front, light, judge, pitches)
+    assert sorted(calls) == sorted(chosen) and len(set(calls)) == len(calls)
+    bright = [i for i in range(len(size_of)) if front.eye_level[i] >= light * (1 - 1e-9)]
+    assert set(chosen) <= set(bright)
+    elemental = front.p10[:, 0]
+    best_of = {p: max(elemental[i] for i in bright if front.pitch_mm[i] == p)
+               for p in {front.pitch_mm[i] for i in bright}}
+    climbed = sorted(best_of, key=lambda p: -best_of[p])[:pitches]
+    assert {front.pitch_mm[i] for i in chosen} == set(climbed)
+    for p in climbed:
+        at = [i for i in bright if front.pitch_mm[i] == p]
+        best = max(at, key=fitted_p10)
+        assert best in chosen
+
+
+def test_the_climb_refuses_no_pitches():
+    front = ladder_front([[10.0]], [[1.0]])
+    with pytest.raises(ValueError, match="pitches = 0"):
+        climb_rivals(front, 0.5, lambda i: 0.0, 0)
 
 
 # -- the known best regular array ---------------------------------------------------------------

@@ -3,12 +3,14 @@ bright at the eye: report.json's "made_part" block.
 
 The part is judged as made (`aperture_fab.validation.made_quality`) over made copies x eye
 states; the regular family (`aperture_fab.validation.regular`) is searched with elemental images
-over fewer eye states, and its best rivals at the part's light are judged again with their
-display fitted the way the part's is.
+over fewer eye states, and at its best pitches the arrays at the part's light are judged again
+with their display fitted the way the part's is, climbing over hole sizes
+(`aperture_fab.validation.rival_search`).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -25,21 +27,20 @@ from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.made_quality import judge_made
-from aperture_fab.validation.regular import RegularArray, regular_arrays, regular_front, rivals_at
+from aperture_fab.validation.regular import (
+    RegularArray,
+    RegularFront,
+    regular_arrays,
+    regular_front,
+)
+from aperture_fab.validation.rival_search import RIVAL_PITCHES, climb_rivals
 
-__all__ = ["made_part_block", "FAMILY_STATES", "FITTED_RIVALS", "RIVAL_FIT_ITERATIONS"]
+__all__ = ["made_part_block", "FAMILY_STATES", "RIVAL_FIT_ITERATIONS"]
 
 #: The report's regular search: eye states of the elemental-image pass over the whole family,
-#: rivals whose display is then fitted, and the fit's Adam iterations. The pass with elemental
-#: images ranks the rivals poorly (a fit lifts some arrays 2 dB, others hardly): on the four
-#: default targets (`benchmarks/bench_made_part.py`, 6 rivals) the best fitted rival was the
-#: 5th, 3rd, 5th and 2nd by that rank: 2 rivals overstated the margins by up to 0.6 dB, 4 by
-#: at most 0.06 dB. Since the light floor holds the mean efficiency (2026-12-07) the photo's
-#: part is darker (0.34 % at the eye), more arrays are at least as bright, and its best
-#: fitted rival (2.5 mm, 0.566 mm: 18.64 dB) was 8th by that rank: 4 rivals overstated its
-#: margin by 0.7 dB. The pass is cheap at 8 states (17.7 s for 154 arrays, 22 s at 16).
+#: whose best pitches the fitted search then climbs (`rival_search.climb_rivals`). The pass is
+#: cheap at 8 states (17.7 s for 154 arrays, 22 s at 16).
 FAMILY_STATES = 8
-FITTED_RIVALS = 8
 RIVAL_FIT_ITERATIONS = 20
 #: A rival is judged at these shares of its fit and keeps its best: the fit lowers the mean
 #: loss over eye states, and past a point trades the worst states (p10) for the median.
@@ -58,17 +59,18 @@ NEGLECTED = ("light scattered off hole walls and plate faces", "the veil's fall-
 def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarray,
                     open_fraction: np.ndarray, displays: np.ndarray, process: Process, *,
                     states: int, copies: int = MADE_COPIES, seed: int = 0,
-                    rivals: int = FITTED_RIVALS, fit_iterations: int = RIVAL_FIT_ITERATIONS,
+                    rival_pitches: int = RIVAL_PITCHES, fit_iterations: int = RIVAL_FIT_ITERATIONS,
                     family_states: int = FAMILY_STATES,
                     device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
                     cache: JudgedCache | None = None) -> dict[str, Any]:
     """report.json's "made_part" block: the part as made (made open fractions (rows, cols),
     displays (T, C, H, W)) over `copies` made copies x `states` eye states, and the best
     regular array at least as bright at the eye, searched over the family with elemental
-    images (family_states eye states), its `rivals` best rivals that bright judged again with
-    the display fitted like the part's (fit_iterations of `fit_display` on the same as-made
-    loss; 0: elemental images), each at its best of RIVAL_FIT_SHARES of the fit: the part
-    meets its rivals at their best. cache: keeps the family's judgements between runs
+    images (family_states eye states), then the arrays that bright at its `rival_pitches` best
+    pitches judged again with the display fitted like the part's (fit_iterations of
+    `fit_display` on the same as-made loss; 0: elemental images), climbing over hole sizes
+    (`climb_rivals`), each at its best of RIVAL_FIT_SHARES of the fit: the part meets its
+    rivals at their best. cache: keeps the family's judgements between runs
     (`regular_front`; they do not depend on the part)."""
     renderer = Renderer(scene, device=device, dtype=dtype)
     optics = made_optics(scene, process)
@@ -79,8 +81,6 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     family = regular_front(targets, arrays,
                            distribution.evaluation_states(min(states, family_states)),
                            device=device, dtype=dtype, cache=cache)
-    chosen = sorted(rivals_at(family, part.eye_level),
-                    key=lambda i: -float(family.p10[i].mean()))[:rivals]
 
     def fit(regular: RegularArray, shown: np.ndarray) -> list[np.ndarray]:
         kept = {max(1, round(share * fit_iterations)) for share in RIVAL_FIT_SHARES}
@@ -99,9 +99,17 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     # settings (its own iteration count, not the design's) and the points kept along it.
     fit_key = (replace(settings, iterations=fit_iterations), fit_iterations, RIVAL_FIT_SHARES) \
         if fit_iterations > 0 else None
-    fitted = regular_front(targets, [arrays[i] for i in chosen], evaluation, copies, seed,
-                           fit=fit if fit_iterations > 0 else None, eye_level=part.eye_level,
-                           device=device, dtype=dtype, cache=cache, fit_key=fit_key)
+    judged: dict[int, RegularFront] = {}
+
+    def judge(index: int) -> float:
+        one = regular_front(targets, [arrays[index]], evaluation, copies, seed,
+                            fit=fit if fit_iterations > 0 else None, eye_level=part.eye_level,
+                            device=device, dtype=dtype, cache=cache, fit_key=fit_key)
+        judged[index] = one
+        return float(one.p10.mean()) if one.best_at(part.eye_level) is not None else -math.inf
+
+    chosen = climb_rivals(family, part.eye_level, judge, rival_pitches)
+    fitted = RegularFront.joined([judged[i] for i in chosen]) if chosen else family.subset([])
     best = fitted.best_at(part.eye_level)
     percentiles = {f"p{q}_db": part.percentile(q).tolist() for q in (10, 50, 90)}
     block: dict[str, Any] = {

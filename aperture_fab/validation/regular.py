@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -47,7 +47,7 @@ from aperture_fab.validation.made_quality import (
 )
 
 __all__ = ["RegularArray", "RegularFront", "elemental", "lattice_scene", "regular_arrays",
-           "regular_front", "rivals_at", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
+           "regular_front", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
 
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
 MAX_REGULAR_PITCH_MM = 3.0
@@ -203,24 +203,18 @@ class RegularFront:
                             self.eye_level[pick], self.p10[pick], self.p50[pick],
                             self.p90[pick])
 
+    @staticmethod
+    def joined(fronts: Sequence[RegularFront]) -> RegularFront:
+        """The arrays of `fronts`, in order."""
+        return RegularFront(*(np.concatenate([getattr(f, field.name) for f in fronts])
+                              for field in fields(RegularFront)))
+
     def as_dict(self) -> dict[str, list[float]]:
         """Plain lists for report.json: per array its pitch, diameter, efficiency, light at
         the eye and p10 / p50 (mean over targets)."""
         return {"pitch_mm": self.pitch_mm.tolist(), "diameter_mm": self.diameter_mm.tolist(),
                 "efficiency": self.efficiency.tolist(), "eye_level": self.eye_level.tolist(),
                 "p10_db": self.p10.mean(1).tolist(), "p50_db": self.p50.mean(1).tolist()}
-
-
-def rivals_at(front: RegularFront, eye_level: float, per_pitch: int = 2) -> list[int]:
-    """Indices of the arrays that can be the best regular array with at least `eye_level`
-    light at the eye: per lattice pitch, the `per_pitch` smallest holes that bright (a larger
-    hole at the same pitch is only blurrier), to judge again with the display fitted."""
-    out = []
-    for pitch in np.unique(front.pitch_mm):
-        bright = np.flatnonzero((front.pitch_mm == pitch)
-                                & (front.eye_level >= eye_level * (1 - 1e-9)))
-        out += [int(i) for i in bright[np.argsort(front.diameter_mm[bright])][:per_pitch]]
-    return sorted(out)
 
 
 def elemental(regular: RegularArray, targets: torch.Tensor) -> np.ndarray:
