@@ -355,7 +355,7 @@ def test_lowering_the_floor_is_proposed_only_where_the_part_sits_at_it(efficienc
 
 @pytest.mark.parametrize(("lattice", "checked_part", "margin", "named"), [
     ("rival", None, RETRY_LATTICE_BELOW_DB - 0.5, False),  # the design job tried it
-    ("rival", None, RETRY_LATTICE_BELOW_DB + 0.5, True),  # it did not: the part won
+    ("rival", None, LATTICE_FIX_BELOW_DB + 0.5, False),  # the part is far enough ahead
     ("rival", {"path": "plate.stl"}, RETRY_LATTICE_BELOW_DB - 0.5, True),  # validate's report
     ("fixed", None, RETRY_LATTICE_BELOW_DB - 0.5, True)])
 def test_the_lattice_fix_is_left_out_where_the_design_job_tried_it(lattice, checked_part,
@@ -371,7 +371,8 @@ def test_the_lattice_fix_is_left_out_where_the_design_job_tried_it(lattice, chec
 
 
 @pytest.mark.parametrize(("pitch", "margin", "cells"), [
-    (2.5, -0.1, (8, 8)), (3.0, -2.0, (6, 6)), (2.5, 0.0, None), (0.5, -1.0, None)])
+    (2.5, -0.1, (8, 8)), (3.0, -2.0, (6, 6)), (3.0, RETRY_LATTICE_BELOW_DB - 0.1, (6, 6)),
+    (2.5, RETRY_LATTICE_BELOW_DB, None), (0.5, -1.0, None)])
 def test_rival_lattice_is_the_rivals_pitch_over_the_plate(pitch, margin, cells):
     found = block(margin)
     found["regular"]["best"]["pitch_mm"] = pitch
@@ -381,12 +382,14 @@ def test_rival_lattice_is_the_rivals_pitch_over_the_plate(pitch, margin, cells):
 
 
 @pytest.mark.parametrize(("lattice", "first_margin", "second_margin", "kept_second"), [
-    ("rival", -0.3, 0.7, True), ("rival", -0.3, -0.5, False), ("rival", 0.4, None, False),
-    ("fixed", -0.3, None, False)])
-def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
+    ("rival", -0.3, 0.7, True), ("rival", -0.3, -0.5, False),
+    ("rival", RETRY_LATTICE_BELOW_DB - 0.1, RETRY_LATTICE_BELOW_DB + 0.5, True),
+    ("rival", RETRY_LATTICE_BELOW_DB + 0.1, None, False), ("fixed", -0.3, None, False)])
+def test_the_design_job_designs_again_on_the_lattice_of_an_array_close_to_it(
         monkeypatch, lattice, first_margin, second_margin, kept_second):
-    """optimizer.lattice = "rival": a part that loses to the best regular array is designed
-    again on its lattice, and the one with the larger margin kept (both in `lattices`)."""
+    """optimizer.lattice = "rival": a part that beats the best regular array by less than
+    RETRY_LATTICE_BELOW_DB is designed again on its lattice, from its holes, and the one with
+    the larger margin kept (both in `lattices`)."""
     from aperture_fab.pipeline import design_job
 
     calls = []
@@ -411,6 +414,7 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_that_beats_it(
         return
     assert [c.scene.plate.pitch_mm for c in calls] == [(0.5, 0.5), (2.5, 2.5)]
     assert calls[1].scene.plate.cells == (8, 8)
+    assert [c.optimizer.init_diameter_mm for c in calls] == [0.0, 0.1]  # the rival's holes
     assert replaced == [None, {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
                                "margin_db": [first_margin]}]
     assert result.config is calls[1 if kept_second else 0]
@@ -429,7 +433,7 @@ def test_a_part_kept_over_its_rivals_lattice_says_what_the_job_tried(margin):
                                             "margin_db": margin}})
     text = made_verdict(found, report).text
     assert text.startswith("As made")
-    assert ("The design job also designed on the lattice of the array that beat this part (8 x 8 "
+    assert ("The design job also designed on the lattice of the best regular array (8 x 8 "
             "cells of 2.5 mm") in text
     assert ("+0.2 dB over its own best regular array" if margin else "was not judged") in text
 
@@ -477,7 +481,7 @@ def test_a_part_made_on_its_rivals_lattice_says_what_it_replaces():
                              run={"replaces": {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
                                                "margin_db": [-0.3]}})
     text = made_verdict(found, report).text
-    assert text.startswith("The design job made this part on the lattice of the regular array "
-                           "that beat its part on 40 x 40 cells of 0.5 mm (-0.3 dB")
+    assert text.startswith("The design job made this part on the lattice of the best regular "
+                           "array against its part on 40 x 40 cells of 0.5 mm (-0.3 dB")
     plain = SimpleNamespace(**{**vars(report), "run": {"part": "plate.stl"}})
     assert made_verdict(found, plain).text.startswith("As made")

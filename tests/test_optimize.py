@@ -4,7 +4,9 @@ exactly from checkpoints and interruptions."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -206,6 +208,33 @@ def test_every_init_and_display_mode_runs(init: str, display: str, make_config: 
         assert 1 < np.count_nonzero(a0 > pinhole / 2) < a0.size / 10
     if init == "random":
         assert np.unique(np.round(a0, 6)).size > 100
+
+
+@pytest.mark.parametrize("diameter_mm", [0.1, 0.2])
+def test_a_sized_pinhole_start_has_that_hole_in_every_cell(diameter_mm: float,
+                                                          make_config: MakeConfig) -> None:
+    """optimizer.init_diameter_mm (the design job's start on a rival's lattice): every cell
+    holds a hole of that diameter, and the display starts as that array's elemental images."""
+    config = make_config(**{"optimizer.init_diameter_mm": diameter_mm})
+    targets, shown = prepare(config, [asymmetric_marker(32)])
+    a0, d0 = initial_design(config.scene, targets, shown, config.optimizer)
+    hole = math.pi * (diameter_mm / 2) ** 2 / math.prod(config.scene.plate.pitch_mm)
+    np.testing.assert_allclose(a0, hole, rtol=1e-4)
+    plain, d_plain = initial_design(config.scene, targets, shown,
+                                    dataclasses.replace(config.optimizer, init_diameter_mm=0.0))
+    assert np.count_nonzero(plain > plain.max() / 2) < a0.size / 10
+    assert np.abs(d0 - d_plain).max() > 0.1  # other holes, other elemental images
+
+
+@pytest.mark.parametrize(("overrides", "message"), [
+    ({"optimizer.init_diameter_mm": -0.1}, "init_diameter_mm = -0.1 is out of range"),
+    ({"optimizer.init_diameter_mm": float("nan")}, "init_diameter_mm = nan is out of range"),
+    ({"optimizer.init_diameter_mm": 0.2, "optimizer.init": "random"},
+     'init = "random"; use init = "pinholes"')])
+def test_a_sized_start_out_of_range_is_refused(overrides: dict, message: str,
+                                              make_config: MakeConfig) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        make_config(**overrides)
 
 
 def test_random_init_depends_on_the_seed_only(make_config: MakeConfig) -> None:

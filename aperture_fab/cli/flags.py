@@ -35,8 +35,9 @@ OVERRIDES: tuple[tuple[str, str, Any, str], ...] = (
     ("--efficiency-weight", "optimizer.efficiency_weight", float,
      "trade image quality for light (0 ignores light level)"),
     ("--lattice", "optimizer.lattice", ("fixed", "rival"),
-     "rival (default): when the part as made loses to the best regular pinhole array, design "
-     "again on that array's coarser lattice and keep the better part; fixed: --cells only"),
+     "rival (default): when the part as made beats the best regular pinhole array by under "
+     "2 dB, design again on that array's coarser lattice from its holes and keep the better "
+     "part; fixed: --cells only"),
     ("--seed", "optimizer.seed", int, "random seed"),
     ("--precision", "optimizer.precision", ("float32", "float64"), "floating point precision"),
     ("--device", "optimizer.device", str, "auto (CUDA when available), cpu, cuda or cuda:N"),

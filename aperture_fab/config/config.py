@@ -87,9 +87,8 @@ SECTION_KEYS: dict[str, tuple[str, ...]] = {
             "weights", "eyebox_mm", "eyebox_shape", "pupil_range_mm", "focus_range_diopters",
             "gaze_deg", "rotation_mm"),
     "optimizer": ("method", "learning_rate", "momentum", "iterations", "schedule", "init",
-                  "display", "efficiency_weight", "min_efficiency", "min_eye_level",
-                  "plateau_patience",
-                  "plateau_tolerance", "seed",
+                  "init_diameter_mm", "display", "efficiency_weight", "min_efficiency",
+                  "min_eye_level", "plateau_patience", "plateau_tolerance", "seed",
                   "precision", "device", "checkpoint_every", "quantize_share", "eye_states",
                   "tail_share", "tracking", "lattice"),
 }
@@ -107,7 +106,7 @@ _FLOATS = {
     "optimizer.efficiency_weight", "optimizer.min_efficiency", "optimizer.min_eye_level",
     "optimizer.plateau_tolerance",
     "optimizer.quantize_share",
-    "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share",
+    "eye.gaze_deg", "eye.rotation_mm", "optimizer.tail_share", "optimizer.init_diameter_mm",
     "display.cover_glass_mm", "display.cover_glass_index", "display.emission_exponent",
 }
 _WHOLES = {

@@ -137,6 +137,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "iterations": 150,
             "schedule": "cosine",
             "init": "pinholes",
+            "init_diameter_mm": 0.0,  # the diffraction-optimal pinholes
             "display": "optimized",
             "efficiency_weight": 0.0,
             "min_efficiency": LIGHT_FLOOR,
@@ -153,7 +154,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             # the part's light on three of the four targets, the same on the photo (README)
             "tail_share": 0.5,
             "tracking": "untracked",
-            # A part a plain array beats is designed again on that array's lattice (README)
+            # A part within 2 dB of a plain array is designed again on that array's lattice,
+            # from its holes (README)
             "lattice": "rival",
         },
         "process": {"name": DEFAULT_PROCESS},
@@ -190,6 +192,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "iterations": 300,
             "schedule": "constant",
             "init": "random",
+            "init_diameter_mm": 0.0,
             "display": "target",
             "efficiency_weight": 0.0,
             "min_efficiency": 0.0,

@@ -30,6 +30,8 @@ LATTICES: tuple[Lattice, ...] = ("fixed", "rival")
 MAX_ITERATIONS = 1_000_000
 #: Most eye states drawn per iteration: each is a full render of every target.
 MAX_EYE_STATES = 1024
+#: The largest hole diameter a pinhole start may ask for (mm); a cell caps it further.
+MAX_INIT_DIAMETER_MM = 100.0
 
 
 def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
@@ -48,6 +50,10 @@ class OptimizerSettings:
     schedule: learning-rate schedule, "cosine" decays to 5 % at the end.
     init: "pinholes" (a regular pinhole array of good size and pitch), "random" (uniform random
         mask, the dissertation's start) or "uniform" (every hole half open).
+    init_diameter_mm: the pinhole start's hole diameter, a hole in every cell (the design job
+        sets it to start a design on a regular rival's lattice from the rival's holes); 0 (the
+        default): the diffraction-optimal pinhole, at the pitch that keeps each hole in its own
+        elemental image. Only with init = "pinholes".
     display: "optimized" (display content optimized with the plate) or "target" (shown as is).
     efficiency_weight: weight of the light-efficiency term (0 ignores the light level).
     min_efficiency: a brightness floor: the plate's light efficiency as made (its view of a
@@ -94,6 +100,7 @@ class OptimizerSettings:
     iterations: int = 300
     schedule: Schedule = "cosine"
     init: Init = "pinholes"
+    init_diameter_mm: float = 0.0
     display: DisplayMode = "optimized"
     efficiency_weight: float = 0.0
     min_efficiency: float = 0.0
@@ -157,6 +164,17 @@ class OptimizerSettings:
                 raise ValueError(
                     f"optimizer.{name} = {floor!r} is out of range; allowed: 0 <= floor < 1 "
                     f"(a share {what}, e.g. 0.005 for 0.5 %; 0 sets no floor).")
+        if not (math.isfinite(self.init_diameter_mm)
+                and 0 <= self.init_diameter_mm <= MAX_INIT_DIAMETER_MM):
+            raise ValueError(
+                f"optimizer.init_diameter_mm = {self.init_diameter_mm!r} is out of range; "
+                f"allowed: 0 to {MAX_INIT_DIAMETER_MM:g} mm (the start's hole diameter, at most "
+                "the cell's largest hole; 0: the diffraction-optimal pinhole).")
+        if self.init_diameter_mm > 0 and self.init != "pinholes":
+            raise ValueError(
+                f"optimizer.init_diameter_mm = {self.init_diameter_mm:g} sizes the pinhole "
+                f'start\'s holes, but optimizer.init = "{self.init}"; use init = "pinholes" or '
+                "init_diameter_mm = 0.")
         if not (math.isfinite(self.quantize_share) and 0 <= self.quantize_share <= 1):
             raise ValueError(
                 f"optimizer.quantize_share = {self.quantize_share!r} is out of range; allowed: "

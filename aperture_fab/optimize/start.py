@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from aperture_fab.config.settings import OptimizerSettings
-from aperture_fab.optics.baselines import elemental_display, regular_pinholes
-from aperture_fab.optics.scene import Scene
+from aperture_fab.optics.baselines import PinholeArray, elemental_display, regular_pinholes
+from aperture_fab.optics.scene import Scene, open_fraction_of
 
 __all__ = ["INIT_CLOSED_SHARE", "initial_state", "initial_design"]
 
@@ -41,7 +41,7 @@ def initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Te
     elif settings.init == "uniform":
         share = torch.full((rows, cols), 0.5, dtype=torch.float64)
     else:
-        array = regular_pinholes(scene, min_fraction=max(lo, smallest_made))
+        array = _start_array(scene, settings.init_diameter_mm, max(lo, smallest_made), hi)
         a = torch.as_tensor(array.open_fraction)
         share = torch.where(a > 0, (a - lo) / (hi - lo), torch.full_like(a, INIT_CLOSED_SHARE))
         share = share.clamp(INIT_CLOSED_SHARE, 1 - INIT_CLOSED_SHARE)
@@ -65,6 +65,17 @@ def initial_state(scene: Scene, targets: torch.Tensor, target_displays: torch.Te
         "since_below_floor": math.inf,
     }
     return state
+
+
+def _start_array(scene: Scene, diameter_mm: float, lo: float, hi: float) -> PinholeArray:
+    """The pinhole start: holes of diameter_mm in every cell (their open fraction within
+    [lo, hi]), or with 0 the scene's regular pinhole array (`regular_pinholes`)."""
+    if diameter_mm <= 0:
+        return regular_pinholes(scene, min_fraction=lo)
+    plate = scene.plate
+    ncx, ncy = plate.cells
+    fraction = min(max(float(open_fraction_of(diameter_mm / 2, plate.pitch_mm)), lo), hi)
+    return PinholeArray(np.full((ncy, ncx), fraction), 1, (ncy // 2, ncx // 2), diameter_mm)
 
 
 def initial_design(scene: Scene, targets: np.ndarray, target_displays: np.ndarray,

@@ -59,15 +59,12 @@ from aperture_fab.pipeline.design_files import (
     summary_json,
 )
 from aperture_fab.pipeline.judged_folder import default_cache
-from aperture_fab.pipeline.lattices import better_part, margin_db
+from aperture_fab.pipeline.lattices import better_part, margin_db, rival_config
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.judged_cache import JudgedCache
-from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.report import Report, Verdict, eye_headline
 from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
 from aperture_fab.validation.verdicts import (
-    RETRY_LATTICE_BELOW_DB,
-    rival_lattice,
     with_tried_lattice,
 )
 
@@ -162,8 +159,9 @@ def design(
     is written; `run_design` writes the result. command: what the report says ran it.
     stage: told each stage after the optimizer as it starts, in words.
 
-    With optimizer.lattice = "rival" (the default), a part as made that loses to the best
-    regular pinhole array of a coarser pitch is designed again on that array's lattice, and the
+    With optimizer.lattice = "rival" (the default), a part as made that beats the best regular
+    pinhole array of a coarser pitch by less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed
+    again on that array's lattice, from that array's holes (`lattices.rival_config`), and the
     part with the larger margin over its own best regular array is kept (`lattices` says
     both). The second design is not checkpointed: interrupted, the job stops and --resume
     starts again from the first design's checkpoint."""
@@ -175,18 +173,16 @@ def design(
     plate = config.scene.plate
     given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}
     block = None if first.report is None else first.report.made_part
-    lattice = None
+    moved = None
     if config.optimizer.lattice == "rival" and block:
-        lattice = rival_lattice(given, block, RETRY_LATTICE_BELOW_DB)
-    if lattice is None or not block:
+        moved = rival_config(config, block)
+    if moved is None or not block:
         return first
-    pitch = lattice[0]
-    moved = dataclasses.replace(config, scene=lattice_scene(config.scene, pitch))
     if stage is not None:
         nx, ny = moved.scene.plate.cells
-        stage(f"design: the part as made loses to a regular array of {pitch:g} mm pitch "
-              f"({margin_db(first):+.1f} dB); designing again on its lattice ({nx} x {ny} "
-              "cells)")
+        stage(f"design: the part as made is {margin_db(first):+.1f} dB against a regular "
+              f"array of {moved.scene.plate.pitch_mm[0]:g} mm pitch; "
+              f"designing again on its lattice ({nx} x {ny} cells) from its holes")
     try:
         second = design_on(moved, replaces={**given, "margin_db": block["margin_db"]})
     except Interrupted:

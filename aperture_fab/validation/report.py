@@ -12,7 +12,8 @@ by `report_json`):
     run             (optional) {"part": the part's file name, "process", "date" (ISO 8601 UTC),
                     "command": the command line, or null when called from Python; and
                     "replaces" when the design job made this part on the best regular array's
-                    lattice because its part on the config's own cells lost to that array:
+                    lattice because its part on the config's own cells beat that array by too
+                    little (`verdicts.RETRY_LATTICE_BELOW_DB`):
                     {"pitch_mm", "cells", "margin_db"} of that part; "tried" when it designed
                     on that lattice too and kept this part: the same of the other}
     photometry      (optional) the light budget of the part as built, or null when its light
