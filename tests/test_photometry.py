@@ -13,6 +13,7 @@ from aperture_fab.config.stages import PhotometrySettings, read_tables
 from aperture_fab.optics.photometry import (
     MESOPIC_LOWER_CD_M2,
     MESOPIC_UPPER_CD_M2,
+    PUPIL_TOLERANCE_MM,
     REFERENCE_AGE_YEARS,
     light_budget,
     pupil_diameter_mm,
@@ -69,6 +70,24 @@ def test_a_bright_view_with_the_right_pupil_has_no_warning() -> None:
     implied = pupil_diameter_mm(100.0, 40.0 * 40.0)
     budget = light_budget(0.1, 1.0, settings, implied, (40.0, 40.0))
     assert budget.regime == "photopic" and budget.warnings() == []
+
+
+@pytest.mark.parametrize(("pupils", "warned"), [
+    ((3.0, 6.0), False), ((4.5, 6.0), True), (None, True)])
+def test_the_pupil_is_judged_against_the_pupils_the_design_was_made_for(pupils, warned) -> None:
+    """A design made over pupils of 3 to 6 mm (eye.pupil_range_mm) was judged at the 3.4 mm
+    pupil of a 34 cd/m2 view; one made for 4 mm alone, or 4.5 to 6, was not."""
+    settings = PhotometrySettings(panel_luminance_cd_m2=500.0)
+    budget = light_budget(0.5, 0.136, settings, 4.0, (43.0, 43.0), pupils)
+    assert 3.0 < budget.implied_pupil_mm < 4.0 - PUPIL_TOLERANCE_MM
+    lo, hi = pupils or (4.0, 4.0)
+    assert budget.pupil_mismatch_mm == pytest.approx(budget.implied_pupil_mm - lo if warned
+                                                     else 0.0)
+    words = " ".join(budget.warnings())
+    assert ("eye.pupil_mm" in words) == warned
+    if warned:
+        assert (f"outside the {lo:g} to {hi:g} mm the design was made for" if pupils else
+                "outside the 4 mm the design assumed") in words
 
 
 @pytest.mark.parametrize(("luminance", "expected"), [

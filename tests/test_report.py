@@ -922,7 +922,7 @@ def test_a_report_amended_with_the_tried_lattice_says_so_and_round_trips() -> No
     changed = [(a, b) for a, b in zip(judged.verdicts, amended.verdicts, strict=True) if a != b]
     assert len(changed) == 1 and changed[0][0].topic == MADE_TOPIC
     assert changed[0][1].text == changed[0][0].text + (
-        " The design job also designed on the lattice of the array that beat this part (8 x 8 "
+        " The design job also designed on the lattice of the best regular array (8 x 8 "
         "cells of 2.5 mm; optimizer.lattice = \"rival\"): its part there reached -1.5 dB over "
         "its own best regular array, so it kept this one.")
     assert json.loads(report_json(Report.from_json(amended.as_json()))) == amended.as_json()

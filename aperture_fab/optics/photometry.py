@@ -97,6 +97,8 @@ class LightBudget:
     illuminance with the assumed pupil. assumed_pupil_mm: the design's pupil.
     implied_pupil_mm: the pupil Watson and Yellott give for view_cd_m2 over the field of view.
     regime: photopic, mesopic or scotopic. field_area_deg2: the adapting field.
+    designed_pupils_mm: the pupil diameters (lo, hi) the design was made and judged for (its
+        eye distribution's eye.pupil_range_mm); None: the assumed pupil alone.
     """
 
     efficiency: float
@@ -108,11 +110,21 @@ class LightBudget:
     implied_pupil_mm: float
     regime: Regime
     field_area_deg2: float
+    designed_pupils_mm: tuple[float, float] | None = None
 
     @property
     def pupil_mismatch_mm(self) -> float:
-        """Implied minus assumed pupil diameter (mm)."""
-        return self.implied_pupil_mm - self.assumed_pupil_mm
+        """How far the implied pupil lies outside the designed ones (mm; negative: smaller,
+        0: among them)."""
+        lo, hi = self.designed_pupils_mm or (self.assumed_pupil_mm, self.assumed_pupil_mm)
+        return self.implied_pupil_mm - min(max(self.implied_pupil_mm, lo), hi)
+
+    def designed_pupils(self) -> str:
+        """The pupils the design was made for, in words."""
+        if self.designed_pupils_mm is None:
+            return f"the {self.assumed_pupil_mm:g} mm the design assumed"
+        lo, hi = self.designed_pupils_mm
+        return f"the {lo:g} to {hi:g} mm the design was made for"
 
     def warnings(self) -> list[str]:
         """What a designer should act on, in words; empty when nothing."""
@@ -126,16 +138,18 @@ class LightBudget:
         if abs(self.pupil_mismatch_mm) > PUPIL_TOLERANCE_MM:
             out.append(
                 f"At {self.view_cd_m2:.3g} cd/m2 the pupil opens to about "
-                f"{self.implied_pupil_mm:.1f} mm (Watson and Yellott 2012), not the "
-                f"{self.assumed_pupil_mm:g} mm the design assumed: set eye.pupil_mm (and "
+                f"{self.implied_pupil_mm:.1f} mm (Watson and Yellott 2012), outside "
+                f"{self.designed_pupils()}: set eye.pupil_mm (and "
                 "eye.pupil_range_mm) to the pupil at this light level, or change the light level.")
         return out
 
 
 def light_budget(efficiency: float, content_level: float, settings: PhotometrySettings,
-                 assumed_pupil_mm: float, fov_deg: tuple[float, float]) -> LightBudget:
+                 assumed_pupil_mm: float, fov_deg: tuple[float, float],
+                 designed_pupils_mm: tuple[float, float] | None = None) -> LightBudget:
     """The light budget of a view: efficiency and the content's mean linear level (0 to 1) on a
-    panel of settings.panel_luminance_cd_m2, seen over a field fov_deg (x, y) in degrees."""
+    panel of settings.panel_luminance_cd_m2, seen over a field fov_deg (x, y) in degrees, by a
+    design made for designed_pupils_mm (lo, hi; None: the assumed pupil alone)."""
     if not (math.isfinite(efficiency) and efficiency >= 0):
         raise ValueError(f"efficiency = {efficiency!r}; allowed: a number >= 0.")
     if not (math.isfinite(content_level) and 0 <= content_level <= 1):
@@ -145,4 +159,4 @@ def light_budget(efficiency: float, content_level: float, settings: PhotometrySe
     implied = pupil_diameter_mm(view, area, settings.observer_age_years, settings.adapted_eyes)
     return LightBudget(efficiency, settings.panel_luminance_cd_m2, content_level, view,
                        trolands(view, assumed_pupil_mm), assumed_pupil_mm, implied, regime(view),
-                       area)
+                       area, designed_pupils_mm)

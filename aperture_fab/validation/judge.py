@@ -83,7 +83,7 @@ def light_block(settings: PhotometrySettings, optimizer: OptimizerSettings, eye:
         settings=settings,
         assumed_pupil_mm=eye.pupil_mm, fov_deg=(eye.fov_deg[0], eye.fov_deg[1]),
         min_efficiency=optimizer.min_efficiency, efficiency_weight=optimizer.efficiency_weight,
-        min_eye_level=optimizer.min_eye_level,
+        min_eye_level=optimizer.min_eye_level, designed_pupils_mm=eye.pupil_range_mm,
         optical_density=process.optical_density,
         optical_density_note=process.optical_density_note, open_share=open_share)
 

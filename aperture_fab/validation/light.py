@@ -75,7 +75,8 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
                      min_efficiency: float, efficiency_weight: float, optical_density: float,
                      optical_density_note: str, open_share: float,
                      min_eye_level: float = 0.0,
-                     held: tuple[float, float] | None = None) -> dict[str, Any]:
+                     held: tuple[float, float] | None = None,
+                     designed_pupils_mm: tuple[float, float] | None = None) -> dict[str, Any]:
     """report.json's "photometry" block (report.py's PHOTOMETRY).
 
     efficiency: the part as built's light efficiency (mean over targets, nominal eye).
@@ -85,9 +86,11 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
     level at the nominal eye). open_share: the plate's open area fraction. held: the part as
     made over made copies x eye states (the made-part block's efficiency and light at the eye),
     what the optimizer holds its floors on (per drawn eye state, as made): the floors are
-    judged on it; None judges them at the nominal eye.
+    judged on it; None judges them at the nominal eye. designed_pupils_mm: the pupil range the
+    design was made for (eye.pupil_range_mm; None: the assumed pupil alone).
     """
-    budget = light_budget(efficiency, level, settings, assumed_pupil_mm, fov_deg)
+    budget = light_budget(efficiency, level, settings, assumed_pupil_mm, fov_deg,
+                          designed_pupils_mm)
     warnings = budget.warnings()
     floor = float(min_efficiency)
     held_efficiency, held_level = (efficiency, efficiency * level) if held is None else held
@@ -104,6 +107,9 @@ def photometry_block(*, efficiency: float, level: float, settings: PhotometrySet
         "retinal_illuminance_td": budget.trolands,
         "assumed_pupil_mm": budget.assumed_pupil_mm,
         "implied_pupil_mm": budget.implied_pupil_mm,
+        "designed_pupils_mm": None if designed_pupils_mm is None else list(designed_pupils_mm),
+        "pupil_mismatch_mm": budget.pupil_mismatch_mm,
+        "designed_pupils": budget.designed_pupils(),
         "pupil_source": PUPIL_SOURCE,
         "field_area_deg2": budget.field_area_deg2,
         "observer_age_years": settings.observer_age_years,
@@ -195,14 +201,19 @@ def light_verdict(block: Mapping[str, Any]) -> Verdict:
     if dark:
         problems.append(f"The view is {block['regime']} (below {MESOPIC_UPPER_CD_M2:g} cd/m2): "
                         "acuity and colour fall off.")
-    pupil = abs(block["implied_pupil_mm"] - block["assumed_pupil_mm"]) > PUPIL_TOLERANCE_MM
+    # Blocks written before the design's pupil range was recorded compare with the assumed.
+    mismatch = block.get("pupil_mismatch_mm",
+                         block["implied_pupil_mm"] - block["assumed_pupil_mm"])
+    designed = block.get("designed_pupils",
+                         f"the {block['assumed_pupil_mm']:g} mm the design assumed")
+    pupil = abs(mismatch) > PUPIL_TOLERANCE_MM
     if pupil:
         problems.append(f"At that light the pupil opens to about "
-                        f"{block['implied_pupil_mm']:.1f} mm (Watson and Yellott 2012), not "
-                        f"the {block['assumed_pupil_mm']:g} mm the design assumed.")
+                        f"{block['implied_pupil_mm']:.1f} mm (Watson and Yellott 2012), outside "
+                        f"{designed}.")
     else:
         text += (f" At that light the pupil opens to about {block['implied_pupil_mm']:.1f} mm "
-                 "(Watson and Yellott 2012).")
+                 f"(Watson and Yellott 2012), within {PUPIL_TOLERANCE_MM:g} mm of {designed}.")
     level = "warn" if problems else "pass"
     missed = False
     eye_floor = block["min_eye_level"]
@@ -231,7 +242,7 @@ def light_verdict(block: Mapping[str, Any]) -> Verdict:
         problems.append("Nothing in the design asked for light: optimizer.efficiency_weight, "
                         "optimizer.min_efficiency and optimizer.min_eye_level are 0.")
     if not problems:
-        text += (f" Photopic, and the pupil within {PUPIL_TOLERANCE_MM:g} mm of the design's.")
+        text += f" Photopic, and the pupil within {PUPIL_TOLERANCE_MM:g} mm of the design's."
     fixes = () if level == "pass" else _light_fixes(block, dark=dark, pupil=pupil,
                                                     missed=missed)
     return Verdict(LIGHT_TOPIC, level, " ".join([text, *problems]), fixes)

@@ -76,6 +76,9 @@ PHOTOMETRY (aperture_fab.validation.light; cd/m2, trolands, mm):
     eye), content_level (mean linear luminance of the content shown, 0 to 1),
     view_luminance_cd_m2, retinal_illuminance_td (with the assumed pupil), assumed_pupil_mm,
     implied_pupil_mm (Watson and Yellott 2012, cited in pupil_source), pupil_source,
+    designed_pupils_mm (eye.pupil_range_mm, the pupils the design was made for, or null: the
+    assumed pupil alone), pupil_mismatch_mm (how far the implied pupil lies outside them),
+    designed_pupils (the same in words),
     field_area_deg2, observer_age_years, adapted_eyes, regime (photopic, mesopic, scotopic),
     photopic_efficiency (the efficiency that keeps this panel and content photopic, or null),
     min_efficiency (optimizer.min_efficiency, 0 = no floor), efficiency_weight,
