@@ -37,7 +37,7 @@ the same over the written part's copies x states (`loss_psnr_db`).
 With `optimizer.lattice = "rival"` (the default) a part that beats the best regular array by
 less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed again on that array's lattice, from
 its holes, and the part with the larger margin kept, as the design job does
-(`pipeline.lattices.rival_config`; both printed; "design s" is then both designs).
+(`pipeline.lattices.rival_start`; both printed; "design s" is then both designs).
 Goals (issue 22): margin >= +4 dB (aim +6) on every target, yield >= 90 %,
 efficiency >= 2 % (aim 3 %), optimizer and judgement within 0.5 dB.
 """
@@ -45,6 +45,7 @@ efficiency >= 2 % (aim 3 %), optimizer and judgement within 0.5 dB.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -60,7 +61,7 @@ from aperture_fab.config.stages import ValidationSettings
 from aperture_fab.metrics import psnr_db
 from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.pipeline.design_job import design
-from aperture_fab.pipeline.lattices import rival_config
+from aperture_fab.pipeline.lattices import rival_start
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
@@ -98,12 +99,13 @@ def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
         overrides["optimizer.iterations"] = args.iterations
     config = resolve(args.preset, None, overrides)
     row = _measure_on(name, config, args)
-    moved = None
+    start = None
     if config.optimizer.lattice == "rival":
-        moved = rival_config(config, row["made_part"])
-    if moved is None:
+        start = rival_start(config.scene, config.optimizer, row["made_part"])
+    if start is None:
         return row
-    other = _measure_on(name, moved, args)
+    other = _measure_on(name, dataclasses.replace(config, scene=start[0], optimizer=start[1]),
+                        args)
     kept = other if _margin(other) > _margin(row) else row
     lattices = [{"pitch_mm": r["pitch_mm"], "cells": r["cells"], "p10_db": r["p10_db"],
                  "margin_db": r.get("margin_db"), "kept": r is kept} for r in (row, other)]

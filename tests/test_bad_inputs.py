@@ -965,6 +965,7 @@ IN_RANGE: dict[tuple[str, Any], str] = {
     ("optimizer.plateau_tolerance", 0.0): "any improvement counts",
     ("optimizer.seed", 0): "seed 0",
     ("optimizer.quantize_share", 0.0): "quantize afterwards only",
+    ("optimizer.init_diameter_mm", 0.0): "the diffraction-optimal pinholes",
 }
 #: Generated values refused by a later check with an outcome of their own.
 LATER: dict[tuple[str, Any], Outcome] = {

@@ -59,7 +59,7 @@ from aperture_fab.pipeline.design_files import (
     summary_json,
 )
 from aperture_fab.pipeline.judged_folder import default_cache
-from aperture_fab.pipeline.lattices import better_part, margin_db, rival_config
+from aperture_fab.pipeline.lattices import better_part, margin_db, rival_start
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.report import Report, Verdict, eye_headline
@@ -161,7 +161,7 @@ def design(
 
     With optimizer.lattice = "rival" (the default), a part as made that beats the best regular
     pinhole array of a coarser pitch by less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed
-    again on that array's lattice, from that array's holes (`lattices.rival_config`), and the
+    again on that array's lattice, from that array's holes (`lattices.rival_start`), and the
     part with the larger margin over its own best regular array is kept (`lattices` says
     both). The second design is not checkpointed: interrupted, the job stops and --resume
     starts again from the first design's checkpoint."""
@@ -173,11 +173,12 @@ def design(
     plate = config.scene.plate
     given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}
     block = None if first.report is None else first.report.made_part
-    moved = None
+    start = None
     if config.optimizer.lattice == "rival" and block:
-        moved = rival_config(config, block)
-    if moved is None or not block:
+        start = rival_start(config.scene, config.optimizer, block)
+    if start is None or not block:
         return first
+    moved = dataclasses.replace(config, scene=start[0], optimizer=start[1])
     if stage is not None:
         nx, ny = moved.scene.plate.cells
         stage(f"design: the part as made is {margin_db(first):+.1f} dB against a regular "

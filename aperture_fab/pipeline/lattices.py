@@ -9,14 +9,15 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from aperture_fab.config.config import Config
+from aperture_fab.config.settings import OptimizerSettings
+from aperture_fab.optics.scene import Scene
 from aperture_fab.validation.regular import lattice_scene
 from aperture_fab.validation.verdicts import RETRY_LATTICE_BELOW_DB, rival_lattice
 
 if TYPE_CHECKING:  # the design job calls these; its module imports this one
     from aperture_fab.pipeline.design_job import DesignResult
 
-__all__ = ["better_part", "margin_db", "rival_config"]
+__all__ = ["better_part", "margin_db", "rival_start"]
 
 
 def margin_db(result: DesignResult) -> float:
@@ -44,18 +45,19 @@ def better_part(first: DesignResult, second: DesignResult) -> DesignResult:
     return dataclasses.replace(kept, lattices=(record(first), record(second)))
 
 
-def rival_config(config: Config, block: Mapping[str, Any]) -> Config | None:
-    """The config of the second design, or None: when the part as made (its report's made_part
-    `block`) beats its best regular array by less than RETRY_LATTICE_BELOW_DB and that array's
-    pitch is coarser than the plate's cells (`rival_lattice`), the plate of that pitch over
-    the same outline, started from the array's own holes (optimizer.init_diameter_mm) and its
-    elemental images: the part then starts where its rival is, at its light."""
-    plate = config.scene.plate
+def rival_start(scene: Scene, optimizer: OptimizerSettings, block: Mapping[str, Any],
+                ) -> tuple[Scene, OptimizerSettings] | None:
+    """The scene and optimizer settings of the second design, or None: when the part as made
+    (its report's made_part `block`) beats its best regular array by less than
+    RETRY_LATTICE_BELOW_DB and that array's pitch is coarser than the plate's cells
+    (`rival_lattice`), the plate of that pitch over the same outline, started from the array's
+    own holes (optimizer.init_diameter_mm) and its elemental images: the part then starts where
+    its rival is, at its light."""
+    plate = scene.plate
     given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}
     lattice = rival_lattice(given, block, RETRY_LATTICE_BELOW_DB)
     if lattice is None:
         return None
-    start = dataclasses.replace(config.optimizer, init="pinholes",
+    start = dataclasses.replace(optimizer, init="pinholes",
                                 init_diameter_mm=float(block["regular"]["best"]["diameter_mm"]))
-    return dataclasses.replace(config, scene=lattice_scene(config.scene, lattice[0]),
-                               optimizer=start)
+    return lattice_scene(scene, lattice[0]), start
