@@ -25,6 +25,7 @@ from aperture_fab.validation.regular import (
     PITCH_STEP_MM,
     SIZE_RATIO,
     elemental,
+    family_outline_mm,
     lattice_scene,
     regular_arrays,
     regular_front,
@@ -91,6 +92,23 @@ def test_the_family_does_not_depend_on_the_parts_cells() -> None:
                                                        "plate.cells": [8, 8]}).scene, process)
     assert len(fine) == len(coarse)
     for a, b in zip(fine, coarse, strict=True):
+        assert a.scene == b.scene and a.array.diameter_mm == b.array.diameter_mm
+        np.testing.assert_array_equal(a.array.open_fraction, b.array.open_fraction)
+
+
+@pytest.mark.parametrize("pitch_mm", [0.75, 1.5, 2.5])
+def test_a_part_moved_to_coarser_cells_meets_the_same_family(pitch_mm: float) -> None:
+    """The design job's second design sits on whole cells of a rival's pitch, a plate smaller
+    than the display (4 mm) when the pitch does not divide it; its family is still the one over
+    the display, the first design's."""
+    process = resolve_process("photomask")
+    scene = tiny_config("near-eye").scene
+    moved = lattice_scene(scene, pitch_mm)
+    assert moved.plate.size_mm[0] <= scene.plate.size_mm[0]
+    assert family_outline_mm(moved) == family_outline_mm(scene) == scene.plate.size_mm
+    first, second = regular_arrays(scene, process), regular_arrays(moved, process)
+    assert len(first) == len(second)
+    for a, b in zip(first, second, strict=True):
         assert a.scene == b.scene and a.array.diameter_mm == b.array.diameter_mm
         np.testing.assert_array_equal(a.array.open_fraction, b.array.open_fraction)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -160,6 +160,54 @@ def test_fit_display_adapts_the_content_to_a_fixed_plate():
 
     assert loss(fitted) < 0.7 * loss(shown)
     assert history[-1] < history[0]
+
+
+#: A valid value other than the tiny config's for each optimizer setting `fit_display` does
+#: not read: the judged cache keys rival fits by FIT_SETTINGS alone.
+NOT_FIT_SETTINGS = {"method": "sgd", "momentum": 0.5, "iterations": 7, "init": "random",
+                    "init_diameter_mm": 0.2, "display": "target", "efficiency_weight": 0.3,
+                    "min_efficiency": 0.05, "plateau_patience": 3, "plateau_tolerance": 0.1,
+                    "checkpoint_every": 3, "quantize_share": 0.5, "tracking": "tracked",
+                    "lattice": "fixed"}
+
+
+@pytest.fixture(scope="module")
+def small_fit():
+    """fit(settings) -> the content 3 iterations of `fit_display` give, on the tiny scene."""
+    from conftest import tiny_config
+
+    from aperture_fab.io.images import prepare_targets
+    from aperture_fab.optimize.optimizer import fit_display
+
+    # The moving eye's preset: the seed draws each iteration's eye states.
+    config = tiny_config("near-eye", **{"optimizer.precision": "float64"})
+    targets, shown = prepare_targets([digit("3")], config.scene.eye.view_pixels,
+                                     config.scene.display.pixels)
+    plate = np.where(np.random.default_rng(0).random((16, 16)) < 0.3, 0.2, 0.0)
+
+    def fit(**changes):
+        settings = replace(config.optimizer, **changes)
+        return fit_display(config.scene, targets, plate, shown, settings, 3)[0]
+
+    return fit
+
+
+def test_fit_display_reads_only_its_settings(small_fit):
+    """Every optimizer setting is either one the display fit reads (FIT_SETTINGS, the cache's
+    key for rival fits) or one it ignores; changing an ignored one gives the same content,
+    changing one it reads does not."""
+    from aperture_fab.config.settings import OptimizerSettings
+    from aperture_fab.optimize.optimizer import FIT_SETTINGS
+
+    names = {f.name for f in fields(OptimizerSettings)}
+    assert names == set(FIT_SETTINGS) | set(NOT_FIT_SETTINGS), "classify the new setting"
+    base = small_fit()
+    for name, value in NOT_FIT_SETTINGS.items():
+        extra = {"init": "pinholes"} if name == "init_diameter_mm" else {}
+        extra |= {"display": "optimized"} if name == "tracking" else {}
+        np.testing.assert_array_equal(small_fit(**{name: value}, **extra), base, err_msg=name)
+    assert not np.array_equal(small_fit(learning_rate=0.3), base)
+    assert not np.array_equal(small_fit(seed=5), base)
 
 
 def test_the_plate_written_is_the_plate_the_display_was_optimized_for(validated):

@@ -40,7 +40,9 @@ __all__ = [
     "training_states",
     "optimize",
     "fit_display",
+    "fit_settings",
     "made_draw",
+    "FIT_SETTINGS",
 ]
 
 #: The cosine schedule decays the learning rate to this share of its start.
@@ -484,6 +486,18 @@ def optimize(
         continuous=continuous,
         snapped=snapped,
     )
+
+
+#: The optimizer settings `fit_display` reads (its iteration count is an argument of its own):
+#: with the plate, targets and starting content, all a fitted content depends on.
+FIT_SETTINGS = ("learning_rate", "schedule", "seed", "precision", "device", "eye_states",
+                "tail_share", "min_eye_level")
+
+
+def fit_settings(settings: OptimizerSettings) -> dict[str, Any]:
+    """The FIT_SETTINGS of `settings`, by name: a display fit's key (two settings that differ
+    elsewhere, the design's start or its lattice choice, fit the same content)."""
+    return {name: getattr(settings, name) for name in FIT_SETTINGS}
 
 
 def fit_display(

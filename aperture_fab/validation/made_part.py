@@ -11,7 +11,6 @@ with their display fitted the way the part's is, climbing over hole sizes
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,7 +23,7 @@ from aperture_fab.fabrication.process import Process
 from aperture_fab.optics.eyes import distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene
-from aperture_fab.optimize.optimizer import fit_display
+from aperture_fab.optimize.optimizer import fit_display, fit_settings
 from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.made_quality import judge_made
 from aperture_fab.validation.regular import (
@@ -95,9 +94,9 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
                     on_iteration=keep)
         return along
 
-    # What a rival's fitted contents depend on besides the array and the targets: the fit's
-    # settings (its own iteration count, not the design's) and the points kept along it.
-    fit_key = (replace(settings, iterations=fit_iterations), fit_iterations, RIVAL_FIT_SHARES) \
+    # What a rival's fitted contents depend on besides the array and the targets: the settings
+    # the fit reads, its own iteration count and the points kept along it.
+    fit_key = (fit_settings(settings), fit_iterations, RIVAL_FIT_SHARES) \
         if fit_iterations > 0 else None
     judged: dict[int, RegularFront] = {}
 

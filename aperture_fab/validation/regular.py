@@ -1,11 +1,14 @@
 """The family of regular pinhole arrays a process makes, judged as made: the baseline a coded part
 must beat.
 
-An array of the family is a square lattice of equal holes over the part's outline: its own
+An array of the family is a square lattice of equal holes over the family's outline (the
+part's plate or the display, whichever is larger along each axis: `family_outline_mm`): its own
 plate, whose cells are the lattice pitch (every multiple of `PITCH_STEP_MM` up to
 `MAX_REGULAR_PITCH_MM` at which the process makes a hole), each holding one hole of a size the
-process makes in a cell that large. The family depends on the process and the part's outline,
-not on the part's own cells, so designs on different cells meet the same baseline. Holes far
+process makes in a cell that large. The family depends on the process and that outline, not on
+the part's own cells, so designs on different cells meet the same baseline: the design job's
+second design, on a coarser lattice whose whole cells fill a little less than the first's
+plate (`pipeline.lattices`), among them. Holes far
 larger than the part's cells are in the family: at a coarse pitch a large hole often gives a
 plain array the same sharpness at several times the light. The sizes per pitch are a geometric
 ladder of made diameters, `SIZE_RATIO` apart, from the process's smallest hole up to the largest
@@ -46,7 +49,8 @@ from aperture_fab.validation.made_quality import (
     judge_stacks,
 )
 
-__all__ = ["RegularArray", "RegularFront", "elemental", "lattice_scene", "regular_arrays",
+__all__ = ["RegularArray", "RegularFront", "elemental", "family_outline_mm", "lattice_scene",
+           "regular_arrays",
            "regular_front", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
 
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
@@ -94,11 +98,21 @@ class RegularArray:
         return min(radius, self.scene.plate.max_radius_mm)
 
 
-def lattice_scene(scene: Scene, pitch_mm: float) -> Scene:
-    """The scene with a plate of square pitch_mm cells, as many as fit the part's cell grid
-    (at least one), the rest of the plate kept."""
+def family_outline_mm(scene: Scene) -> tuple[float, float]:
+    """The outline (x, y) mm the regular family's plates fill: the part's plate or the
+    display, whichever is larger along each axis (a regular array for this display covers
+    it, whatever cells the part was given)."""
+    plate, display = scene.plate.size_mm, scene.display
+    return max(plate[0], display.width_mm), max(plate[1], display.height_mm)
+
+
+def lattice_scene(scene: Scene, pitch_mm: float,
+                  outline_mm: tuple[float, float] | None = None) -> Scene:
+    """The scene with a plate of square pitch_mm cells, as many as fit `outline_mm` (default:
+    the part's plate; at least one), the rest of the plate kept."""
     plate = scene.plate
-    width, height = (max(1, math.floor(size / pitch_mm + _SLACK)) for size in plate.size_mm)
+    outline = plate.size_mm if outline_mm is None else outline_mm
+    width, height = (max(1, math.floor(size / pitch_mm + _SLACK)) for size in outline)
     cells = (width, height)
     return replace(scene, plate=replace(plate, cells=cells, pitch_mm=(pitch_mm, pitch_mm)))
 
@@ -125,14 +139,15 @@ def _ladder(made: np.ndarray, smallest_mm: float, discrete: bool) -> np.ndarray:
 
 def regular_arrays(scene: Scene, process: Process,
                    max_pitch_mm: float = MAX_REGULAR_PITCH_MM) -> list[RegularArray]:
-    """The regular family of `process` over the part's outline: every multiple of
+    """The regular family of `process` over `family_outline_mm`: every multiple of
     PITCH_STEP_MM up to max_pitch_mm at which the process makes a hole, each with its ladder
     of made sizes (module docstring), in order of pitch, then size. Raises UnmakeableError
     when the process makes none of them."""
     eye_distance = scene.mid_plane_distance_mm
+    outline = family_outline_mm(scene)
     lattices = []
     for k in range(1, math.floor(max_pitch_mm / PITCH_STEP_MM + _SLACK) + 1):
-        lattice = lattice_scene(scene, k * PITCH_STEP_MM)
+        lattice = lattice_scene(scene, k * PITCH_STEP_MM, outline)
         try:
             lattices.append((lattice, made_sizes(lattice.plate, process, eye_distance)))
         except UnmakeableError:  # too fine for the process: coarser lattices may do
