@@ -8,9 +8,9 @@ plate, whose cells are the lattice pitch (every multiple of `PITCH_STEP_MM` up t
 process makes in a cell that large. The family depends on the process and that outline, not on
 the part's own cells, so designs on different cells meet the same baseline: the design job's
 second design, on a coarser lattice whose whole cells fill a little less than the first's
-plate (`pipeline.lattices`), among them. Holes far
-larger than the part's cells are in the family: at a coarse pitch a large hole often gives a
-plain array the same sharpness at several times the light. The sizes per pitch are a geometric
+plate (`pipeline.lattices`), among them. Holes far larger than the part's cells are in the
+family: at a coarse pitch a large hole often gives a plain array the same sharpness at several
+times the light. The sizes per pitch are a geometric
 ladder of made diameters, `SIZE_RATIO` apart, from the process's smallest hole up to the largest
 that pitch holds (which is always in). Each array is judged with its own renderer and made
 optics (`aperture_fab.fabrication.part.made_optics` of its plate), the display showing its
@@ -50,8 +50,8 @@ from aperture_fab.validation.made_quality import (
 )
 
 __all__ = ["RegularArray", "RegularFront", "elemental", "family_outline_mm", "lattice_scene",
-           "regular_arrays",
-           "regular_front", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM", "SIZE_RATIO"]
+           "regular_arrays", "regular_front", "MAX_REGULAR_PITCH_MM", "PITCH_STEP_MM",
+           "SIZE_RATIO"]
 
 #: The regular family's coarsest lattice: beyond ~3 mm a 3 to 6 mm pupil sees too few holes.
 MAX_REGULAR_PITCH_MM = 3.0
