@@ -76,9 +76,14 @@ def run_once(target: str, preset: str, iterations: int | None, folder: Path,
     error = float(np.mean((traced - exact) ** 2))
     made = report.get("made_part") or {}
     part = made.get("part") or {}
-    # Two entries when the job designed again on its rival's lattice (optimizer.lattice).
-    lattices = json.loads((out / "design.json").read_text()).get("lattices") or [None]
-    return {"wall_s": wall, "stages_s": report["timings_s"], "designs": len(lattices),
+    # A job of two designs (optimizer.lattice = "rival"): the report times the kept part's
+    # stages, design.json's lattices each design's; the job's are their sums.
+    lattices = json.loads((out / "design.json").read_text()).get("lattices")
+    stages = report["timings_s"]
+    if lattices:
+        stages = {key: sum(entry["timings_s"].get(key, 0.0) for entry in lattices)
+                  for key in {k for entry in lattices for k in entry["timings_s"]}}
+    return {"wall_s": wall, "stages_s": stages, "designs": len(lattices or [None]),
             "mesh_vs_exact_psnr_db": 10 * math.log10(float(exact.max()) ** 2 / error),
             "as_built_psnr_db": report["metrics"]["as_built"]["mean"]["psnr_db"],
             "optimized_psnr_db": report["metrics"]["optimized"]["mean"]["psnr_db"],
@@ -136,8 +141,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     print(f"  after the optimizer {after:.1f} s: {after / wall:.0%} of the wall time (goal under "
           f"{GOAL_AFTER_SHARE:.0%})")
     if runs[0]["designs"] > 1:
-        print(f"  {runs[0]['designs']} designs (optimizer.lattice = \"rival\"): the stages are "
-              "the kept part's, the wall time both designs' and judgements'")
+        print(f"  {runs[0]['designs']} designs (optimizer.lattice = \"rival\"): each stage the "
+              "sum over them (design.json's lattices)")
     print(f"PSNR after gain: optimized {runs[0]['optimized_psnr_db']:.2f} dB, as built "
           f"{runs[0]['as_built_psnr_db']:.2f} dB; mesh re-trace against the exact view "
           f"{runs[0]['mesh_vs_exact_psnr_db']:.2f} dB")

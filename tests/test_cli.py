@@ -347,6 +347,9 @@ def test_a_part_a_regular_array_beats_is_designed_again_on_its_lattice(
     assert written_config(out)["plate"]["cells"] == kept["cells"]
     report = json.loads((out / "report.json").read_text())
     assert report["scene"]["plate"]["cells"] == kept["cells"]
+    # Each design's stages are timed (bench_end_to_end sums them); the report's are the kept's.
+    assert first["timings_s"]["optimize_s"] > 0 and second["timings_s"]["optimize_s"] > 0
+    assert kept["timings_s"]["optimize_s"] == report["timings_s"]["optimize_s"]
     # A part made on the rival's lattice says which part it replaces; the first part kept says
     # what the job tried, in report.json and on the page.
     assert ("replaces" in report["run"]) == second["kept"]

@@ -402,8 +402,8 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_close_to_it(
         found = block(first_margin if len(calls) == 1 else second_margin)
         found["regular"]["best"]["pitch_mm"] = 2.5
         plate = config.scene.plate
-        report = SimpleNamespace(made_part=found, scene={"plate": {
-            "pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
+        report = SimpleNamespace(made_part=found, timings_s={"optimize_s": 1.0}, scene={
+            "plate": {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
         return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report)
 
     monkeypatch.setattr(design_job, "_design_on", design_on)
@@ -455,8 +455,8 @@ def test_the_design_jobs_kept_first_part_gets_the_tried_lattice_in_its_report(mo
         found = block(-0.3 if replaces is None else -0.5)
         found["regular"]["best"]["pitch_mm"] = 2.5
         plate = config.scene.plate
-        report = SimpleNamespace(made_part=found, scene={"plate": {
-            "pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
+        report = SimpleNamespace(made_part=found, timings_s={"optimize_s": 1.0}, scene={
+            "plate": {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
         return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report,
                                        evidence=Drawn(report))
 

@@ -31,16 +31,19 @@ def margin_db(result: DesignResult) -> float:
 
 def better_part(first: DesignResult, second: DesignResult) -> DesignResult:
     """Of two designs on different lattices, the one whose part as made beats its own best
-    regular array by more (the first on a tie), with both in `lattices`."""
+    regular array by more (the first on a tie), with both in `lattices` (each design's stage
+    seconds among them: the kept part's report times its own)."""
     kept = second if margin_db(second) > margin_db(first) else first
 
     def record(result: DesignResult) -> dict[str, Any]:
         plate = result.config.scene.plate
-        block = None if result.report is None else result.report.made_part
+        report = result.report
+        block = None if report is None else report.made_part
         return {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells),
                 "p10_db": None if not block else list(block["part"]["p10_db"]),
                 "margin_db": None if not block else block["margin_db"],
-                "kept": result is kept}
+                "kept": result is kept,
+                "timings_s": None if report is None else dict(report.timings_s)}
 
     return dataclasses.replace(kept, lattices=(record(first), record(second)))
 
