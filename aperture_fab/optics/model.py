@@ -46,6 +46,7 @@ from aperture_fab.optics.kernels import STATE_FIELDS
 from aperture_fab.optics.pair_table import Pairs, build_pairs, render_table
 from aperture_fab.optics.planes import EPS, Optics
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
+from aperture_fab.optics.stack_filter import filter_levels, filter_levels_into
 
 __all__ = [
     "BACKENDS",
@@ -408,37 +409,27 @@ class Renderer:
         RGB display (`Display.subpixels`) filters each channel with its stripe's offset.
         with_white: the uniform white display's stack (`white_stack`) joined as channel C
         (what `as_made.made_views_and_white` renders), each level written beside it rather
-        than the whole stack copied again to join them (up to 280 MB a judged stack)."""
+        than the whole stack copied again to join them (up to 280 MB a judged stack); not
+        differentiable. The filter's forward and backward: `stack_filter.filter_levels`."""
         d = display.to(self.device, self.dtype)
         if self.oversample > 1:  # each pixel is uniform: its samples repeat its value
             d = d.repeat_interleave(self.oversample, -1).repeat_interleave(self.oversample, -2)
         d = F.pad(d, (self.pad,) * 4)
-        # Channels last, (H, W', C): the layout the fused kernels read. The inverse transforms
-        # over the first two axes give each level in it at once, and faster than channels
-        # first (4.4 against 7.7 ms for a float32 RGB level of 864^2, bit-identical).
-        spectrum = torch.fft.rfft2(d, s=self._fft_shape).permute(1, 2, 0).contiguous()
         kernel, striped = self._window_spectra()
         if self.scene.display.subpixel_offsets_px(d.shape[0]) is not None:
             kernel = cast(torch.Tensor, striped)
-        c = self.kernel_size // 2
-        rows, cols = slice(c, c + d.shape[-2]), slice(c, c + d.shape[-1])
-        # One level at a time: the product spectrum of every level at once is as large as the
-        # stack's inverse transforms, and the batched transform took twice as long (0.20 ->
-        # 0.10 s for a float64 near-eye stack at two samples per pixel).
-        def level_of(level: int) -> torch.Tensor:
-            return torch.fft.irfft2(spectrum * kernel[level], s=self._fft_shape,
-                                    dim=(0, 1))[rows, cols]
-
+        size = (d.shape[-2], d.shape[-1])
         if with_white:
             white = self.white_stack()[0].permute(1, 2, 3, 0)  # (L, H', W', 1)
-            channels = spectrum.shape[-1]
+            channels = d.shape[0]
             levels = torch.empty((*white.shape[:3], channels + 1), dtype=self.dtype,
                                  device=self.device)
-            for level in range(kernel.shape[0]):
-                levels[level, :, :, :channels] = level_of(level)
+            with torch.no_grad():
+                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape,
+                                   self.kernel_size // 2)
             levels[..., channels:] = white
         else:
-            levels = torch.stack([level_of(level) for level in range(kernel.shape[0])])
+            levels = filter_levels(d, kernel, self._fft_shape, self.kernel_size // 2, size)
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
 
     def _window_spectra(self) -> tuple[torch.Tensor, torch.Tensor | None]:
