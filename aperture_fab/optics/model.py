@@ -207,8 +207,13 @@ def stack_shape(scene: Scene, oversample: int = STACK_OVERSAMPLE,
     pad = size // 2 + 1
     pixels = (display.pixels[0] * oversample, display.pixels[1] * oversample)
     height, width = pixels[1] + 2 * pad, pixels[0] + 2 * pad
-    return StackShape(levels, height, width, _fast_length(height + size - 1),
-                      _fast_length(width + size - 1), size, pad, pixels, pixel_mm, window_max,
+    # Kernels centred on sample 0 (`Renderer._spectra`) keep the stack at samples 0 .. height
+    # of the transforms, whose circular convolution wraps nothing into them once they are
+    # height long, not height + size - 1 as a full linear convolution needs: the display is
+    # zero in its pad border, wider than a kernel's half (a 3 mm lattice's judged stack:
+    # transforms of 900^2 against 1000^2).
+    return StackShape(levels, height, width, _fast_length(height), _fast_length(width),
+                      size, pad, pixels, pixel_mm, window_max,
                       window_max * np.sqrt(np.linspace(0, 1, levels)), box, slack)
 
 
@@ -418,18 +423,16 @@ class Renderer:
         kernel, striped = self._window_spectra()
         if self.scene.display.subpixel_offsets_px(d.shape[0]) is not None:
             kernel = cast(torch.Tensor, striped)
-        size = (d.shape[-2], d.shape[-1])
         if with_white:
             white = self.white_stack()[0].permute(1, 2, 3, 0)  # (L, H', W', 1)
             channels = d.shape[0]
             levels = torch.empty((*white.shape[:3], channels + 1), dtype=self.dtype,
                                  device=self.device)
             with torch.no_grad():
-                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape,
-                                   self.kernel_size // 2)
+                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape)
             levels[..., channels:] = white
         else:
-            levels = filter_levels(d, kernel, self._fft_shape, self.kernel_size // 2, size)
+            levels = filter_levels(d, kernel, self._fft_shape)
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
 
     def _window_spectra(self) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -452,9 +455,13 @@ class Renderer:
         return self._filters
 
     def _spectra(self, kernels: np.ndarray) -> torch.Tensor:
-        """Spectra (L, H, W', K) complex of window kernels (L, h, w, K), over the FFT shape."""
-        return torch.fft.rfft2(torch.as_tensor(kernels, dtype=self.dtype, device=self.device),
-                               s=self._fft_shape, dim=(1, 2))
+        """Spectra (L, H, W', K) complex of window kernels (L, h, w, K) over the FFT shape,
+        each centred on sample 0 (wrapped around), so that it filters a display in place."""
+        k = torch.as_tensor(kernels, dtype=self.dtype, device=self.device)
+        full = k.new_zeros((k.shape[0], *self._fft_shape, k.shape[-1]))
+        full[:, :k.shape[1], :k.shape[2]] = k
+        centre = (-(k.shape[1] // 2), -(k.shape[2] // 2))
+        return torch.fft.rfft2(torch.roll(full, centre, dims=(1, 2)), dim=(1, 2))
 
     def white_stack(self) -> torch.Tensor:
         """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a
