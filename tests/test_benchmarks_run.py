@@ -356,3 +356,11 @@ def test_bench_rival_fit_quick(tmp_path: Path) -> None:
     for row in rows:
         assert _positive(row["p10_db"]) and _positive(row["eye_level"])
         assert row["p50_db"] >= row["p10_db"]
+
+
+def test_bench_stack_quick() -> None:
+    """The display stack's forward and backward times, as printed; an unknown pitch refused."""
+    figures = _load("bench_stack").main(["--quick"])
+    assert _positive(figures["forward_ms"]) and _positive(figures["backward_ms"])
+    with pytest.raises(SystemExit, match="no such lattice pitch"):
+        _load("bench_stack").main(["--pitch-mm", "0.3"])

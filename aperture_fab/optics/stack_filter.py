@@ -5,9 +5,9 @@ Every level is the same linear map, a circular convolution by the level's kernel
 backward is its adjoint, a correlation: the display's gradient is the inverse transform of
 the sum over levels of each level's gradient spectrum times its kernel's conjugate spectrum,
 one transform per level and one for the sum. Left to autograd, each level's backward made a
-zero-filled copy of the FFT shape, its own product and an accumulation (a 3 mm lattice's
-24-level RGB stack: backward 119 against 69 ms forward, of which 29 ms transforms); here the
-levels' gradients go through one zero-bordered buffer into one spectrum sum.
+zero-filled copy of the FFT shape, its own product and an accumulation; here the levels'
+gradients go through one zero-bordered buffer into one spectrum sum (a 3 mm lattice's 24-level
+RGB stack: backward 55 against 73 ms, `benchmarks/bench_stack.py`).
 """
 
 from __future__ import annotations
