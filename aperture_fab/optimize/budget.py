@@ -13,13 +13,14 @@ display padded by `pad` pixels per side and pre-filtered at L window radii throu
 see `aperture_fab.optics.model.stack_shape`; the optimizer's renderer samples it once per display
 pixel, OPTIMIZER_OVERSAMPLE):
 
-- both paths: the display stack (irfft output C x L x FH x FW, of which the stack is a slice),
-  its FFT buffers (the product spectrum C x L x FH x (FW/2+1) complex, the kernel spectrum
-  L x FH x (FW/2+1) complex, kept by the renderer, and 3 more for a striped RGB display's
-  per-channel kernels) and their adjoints in the backward (about
-  three stack-sized buffers); per cell PER_CELL_FIXED working-dtype values (logits, their
-  gradient and Adam moments, the radius chain and its graph) and, on the kernel path,
-  PER_CELL_PER_TARGET_BYTES per target (the kernel's float64 radius and (K, 2) offset copies);
+- both paths: the display stack (C x L x H' x W'), built a level at a time
+  (`aperture_fab.optics.stack_filter`): the display's spectrum C x FH x (FW/2+1) complex, one
+  level's product spectrum and irfft output (C x FH x FW), the kernel spectrum L x FH x (FW/2+1)
+  complex, kept by the renderer, and 3 more for a striped RGB display's per-channel kernels;
+  its backward one level's zero-bordered gradient, its spectrum and the spectrum sum; per cell
+  PER_CELL_FIXED working-dtype values (logits, their gradient and Adam moments, the radius
+  chain and its graph) and, on the kernel path, PER_CELL_PER_TARGET_BYTES per target (the
+  kernel's float64 radius and (K, 2) offset copies);
   the display parameter, its gradient and Adam moments and the targets (T x C x H x W, x 6).
 - kernel path (CPU): per target, the channels-last stack copy (C x L x H' x W', kept for the
   backward), the views S x C x N (float64 from the kernel, then in the working dtype) and the
@@ -188,10 +189,10 @@ def estimate(
     n = eye.view_pixels[0] * eye.view_pixels[1]
     k = plate.cells[0] * plate.cells[1]
     half = shape.fft_width // 2 + 1
-    full = c * shape.levels * shape.fft_height * shape.fft_width * isz  # irfft output
-    product = c * shape.levels * shape.fft_height * half * 2 * isz  # complex spectrum product
-    stack = c * shape.levels * shape.height * shape.width * isz
+    # The filter works a level at a time: one level's irfft output and product spectrum.
+    level = c * shape.fft_height * shape.fft_width * isz
     spectrum = c * shape.fft_height * half * 2 * isz
+    stack = c * shape.levels * shape.height * shape.width * isz
     kernel_spectrum = shape.levels * shape.fft_height * half * 2 * isz
     if display.subpixels != "none":  # and one per stripe (the renderer keeps both)
         kernel_spectrum *= 1 + SUBPIXEL_CHANNELS
@@ -219,8 +220,8 @@ def estimate(
         if not gpu:  # the GPU kernels keep nothing per pair
             alive["pair caches"] = threads * box * box * (PAIR_CACHE_BYTES + 24 * c)
         forward = {
-            "FFT buffers": 2 * full + spectrum if display_optimized else full + product,
-            "views": full + views * (8 + (isz if isz != 8 else 0)),
+            "FFT buffers": stack + level + 2 * spectrum,
+            "views": views * (8 + (isz if isz != 8 else 0)),
         }
         grads = views * (isz + (8 if isz != 8 else 0)) + 8 * (blocks + 1) * k
         if display_optimized:
@@ -228,7 +229,7 @@ def estimate(
         backward = {
             "loss gradients": LOSS_GRADIENTS * views * isz,
             "grad buffers": grads,
-            "FFT buffers": full + 2 * product if display_optimized else 0,
+            "FFT buffers": level + 2 * spectrum if display_optimized else 0,
         }
     else:
         keep, typical, extra = _reach_mm(scene, s)
@@ -241,20 +242,20 @@ def estimate(
         per_pair = 8 + (5 if display.emission_power > 0 else 4) * isz  # + falloff weight
         alive["pair tables"] = tables * pairs * per_pair
         alive["autograd"] = t * s * pairs * (6 + c) * isz
-        alive["display stack"] = t * full  # grid_sample keeps the stack (a view of it)
+        alive["display stack"] = t * stack  # grid_sample keeps the stack
         if tracked:
-            alive["tracked stacks"] = t * s * full
+            alive["tracked stacks"] = t * s * stack
         alive["cells"] = k * PER_CELL_FIXED * isz
         chunk = min(pairs, model.DEFAULT_CHUNK_PAIRS) * (CHUNK_VALUES + 2 * c) * isz
         forward = {
             "pair table build": candidates * BUILD_CANDIDATE_BYTES
             + pairs * BUILD_CANDIDATE_BYTES,
-            "FFT buffers": full + product + spectrum,
+            "FFT buffers": stack + level + 2 * spectrum,
             "chunks": chunk,
         }
         backward = {
             "chunks": chunk + (2 * stack if display_optimized else 0),
-            "FFT buffers": full + 2 * product if display_optimized else 0,
+            "FFT buffers": level + 2 * spectrum if display_optimized else 0,
         }
     terms.update(alive)
     worst = max([*forward.items(), *backward.items()], key=lambda kv: kv[1])
