@@ -220,7 +220,7 @@ def estimate(
         if not gpu:  # the GPU kernels keep nothing per pair
             alive["pair caches"] = threads * box * box * (PAIR_CACHE_BYTES + 24 * c)
         forward = {
-            "FFT buffers": stack + level + 2 * spectrum,
+            "FFT buffers": level + 2 * spectrum,  # the stack itself is alive above
             "views": views * (8 + (isz if isz != 8 else 0)),
         }
         grads = views * (isz + (8 if isz != 8 else 0)) + 8 * (blocks + 1) * k
@@ -250,7 +250,7 @@ def estimate(
         forward = {
             "pair table build": candidates * BUILD_CANDIDATE_BYTES
             + pairs * BUILD_CANDIDATE_BYTES,
-            "FFT buffers": stack + level + 2 * spectrum,
+            "FFT buffers": level + 2 * spectrum,
             "chunks": chunk,
         }
         backward = {
