@@ -381,6 +381,43 @@ def test_rival_lattice_is_the_rivals_pitch_over_the_plate(pitch, margin, cells):
     assert lattice == (None if cells is None else (pitch, cells))
 
 
+def fake_design_stages(monkeypatch, first_margin, second_margin, drawn=None):
+    """The design job's stages replaced by fakes: each design made on its config, the first
+    judged as made (`first_margin`) and any finished with a report (the second design's part at
+    `second_margin`; drawn: its evidence). Returns the configs made and, per finished design,
+    (its config, the replaces it was given)."""
+    from aperture_fab.pipeline import design_job
+
+    made, finished = [], []
+
+    def found(margin):
+        judged = block(margin)
+        judged["regular"]["best"]["pitch_mm"] = 2.5
+        return judged
+
+    def make(images, config, **_):
+        made.append(config)
+        return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {},
+                                       timings_s={"optimize_s": 1.0})
+
+    def judged_as_made(result, *_):
+        return dataclasses.replace(result, made_part=found(first_margin))
+
+    def finish(result, replaces=None, **_):
+        finished.append((result.config, replaces))
+        judged = result.made_part or found(first_margin if len(made) == 1 else second_margin)
+        plate = result.config.scene.plate
+        report = SimpleNamespace(made_part=judged, timings_s={"optimize_s": 1.0}, scene={
+            "plate": {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
+        return dataclasses.replace(result, report=report, made_part=judged,
+                                   evidence=None if drawn is None else drawn(report))
+
+    monkeypatch.setattr(design_job, "_made", make)
+    monkeypatch.setattr(design_job, "_judged_as_made", judged_as_made)
+    monkeypatch.setattr(design_job, "_finish", finish)
+    return made, finished
+
+
 @pytest.mark.parametrize(("lattice", "first_margin", "second_margin", "kept_second"), [
     ("rival", -0.3, 0.7, True), ("rival", -0.3, -0.5, False),
     ("rival", RETRY_LATTICE_BELOW_DB - 0.1, RETRY_LATTICE_BELOW_DB + 0.5, True),
@@ -389,35 +426,23 @@ def test_the_design_job_designs_again_on_the_lattice_of_an_array_close_to_it(
         monkeypatch, lattice, first_margin, second_margin, kept_second):
     """optimizer.lattice = "rival": a part that beats the best regular array by less than
     RETRY_LATTICE_BELOW_DB is designed again on its lattice, from its holes, and the one with
-    the larger margin kept (both in `lattices`)."""
+    the larger margin kept (both in `lattices`); a first part the second replaces is judged as
+    made only, never written or judged in full."""
     from aperture_fab.pipeline import design_job
 
-    calls = []
-
-    replaced = []
-
-    def design_on(images, config, replaces=None, **_):
-        calls.append(config)
-        replaced.append(replaces)
-        found = block(first_margin if len(calls) == 1 else second_margin)
-        found["regular"]["best"]["pitch_mm"] = 2.5
-        plate = config.scene.plate
-        report = SimpleNamespace(made_part=found, timings_s={"optimize_s": 1.0}, scene={
-            "plate": {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
-        return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report)
-
-    monkeypatch.setattr(design_job, "_design_on", design_on)
+    made, finished = fake_design_stages(monkeypatch, first_margin, second_margin)
     config = resolve("near-eye", None, {"optimizer.lattice": lattice})
     result = design_job.design([np.zeros((3, 4, 4))], config)
     if second_margin is None:
-        assert len(calls) == 1 and result.config is calls[0] and result.lattices == ()
+        assert len(made) == 1 and result.config is made[0] and result.lattices == ()
+        assert finished == [(made[0], None)]
         return
-    assert [c.scene.plate.pitch_mm for c in calls] == [(0.5, 0.5), (2.5, 2.5)]
-    assert calls[1].scene.plate.cells == (8, 8)
-    assert [c.optimizer.init_diameter_mm for c in calls] == [0.0, 0.1]  # the rival's holes
-    assert replaced == [None, {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
-                               "margin_db": [first_margin]}]
-    assert result.config is calls[1 if kept_second else 0]
+    assert [c.scene.plate.pitch_mm for c in made] == [(0.5, 0.5), (2.5, 2.5)]
+    assert made[1].scene.plate.cells == (8, 8)
+    assert [c.optimizer.init_diameter_mm for c in made] == [0.0, 0.1]  # the rival's holes
+    replaces = {"pitch_mm": [0.5, 0.5], "cells": [40, 40], "margin_db": [first_margin]}
+    assert finished == [(made[1], replaces)] + ([] if kept_second else [(made[0], None)])
+    assert result.config is made[1 if kept_second else 0]
     assert [entry["kept"] for entry in result.lattices] == [not kept_second, kept_second]
     assert [entry["margin_db"] for entry in result.lattices] == [[first_margin],
                                                                   [second_margin]]
@@ -451,20 +476,11 @@ def test_the_design_jobs_kept_first_part_gets_the_tried_lattice_in_its_report(mo
         def with_report(self, report):
             return Drawn(report)
 
-    def design_on(images, config, replaces=None, **_):
-        found = block(-0.3 if replaces is None else -0.5)
-        found["regular"]["best"]["pitch_mm"] = 2.5
-        plate = config.scene.plate
-        report = SimpleNamespace(made_part=found, timings_s={"optimize_s": 1.0}, scene={
-            "plate": {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}})
-        return design_job.DesignResult(config, None, ("t",), np.zeros(1), {}, {}, report=report,
-                                       evidence=Drawn(report))
-
     def with_tried(report, tried):
         amended.append(tried)
         return SimpleNamespace(**{**vars(report), "tried": tried})
 
-    monkeypatch.setattr(design_job, "_design_on", design_on)
+    fake_design_stages(monkeypatch, -0.3, -0.5, drawn=Drawn)
     monkeypatch.setattr(design_job, "with_tried_lattice", with_tried)
     monkeypatch.setattr(design_job, "evidence_files", lambda e: {"report.json": e.report})
     result = design_job.design([np.zeros((3, 4, 4))], resolve("near-eye", None, {}))

@@ -35,10 +35,12 @@ __all__ = ["design_outputs", "evidence_files", "judge_written", "part_bytes", "p
 
 def judge_written(result: DesignResult, fabrication: FabricationSettings,
                   settings: ValidationSettings, stl: bytes, command: Sequence[str] | None = None,
-                  replaces: Mapping[str, Any] | None = None) -> tuple[Validation, Evidence]:
+                  replaces: Mapping[str, Any] | None = None,
+                  made_part: dict[str, Any] | None = None) -> tuple[Validation, Evidence]:
     """Validate the part as written (`stl`: plate.stl's bytes as written, parsed again), judge
     it and draw its report (views.npz, report.html): values, nothing written
-    (`evidence_files` gives their bytes). replaces: the report's run.replaces (`judge`)."""
+    (`evidence_files` gives their bytes). replaces: the report's run.replaces (`judge`).
+    made_part: the part's made-part block when judged already (`validate`)."""
     from aperture_fab.io.formats import read_stl
     from aperture_fab.report.evidence import assemble
 
@@ -50,7 +52,7 @@ def judge_written(result: DesignResult, fabrication: FabricationSettings,
                        fabrication.process, result.names, settings, mesh,
                        built_displays=result.built_displays,
                        baselines={k: result.views[k] for k in BASELINES},
-                       cache=default_cache())
+                       cache=default_cache(), made_part=made_part)
     start = time.perf_counter()
     shown = result.design.displays if result.built_displays is None else result.built_displays
     report = judge(result.config, result.names, result.targets, shown, result.part,

@@ -63,7 +63,12 @@ from aperture_fab.pipeline.lattices import better_part, margin_db, rival_start
 from aperture_fab.pipeline.saved import validations_of
 from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.report import Report, Verdict, eye_headline
-from aperture_fab.validation.validate import Validation, baseline_views, layout_fractions
+from aperture_fab.validation.validate import (
+    Validation,
+    baseline_views,
+    judge_made_part,
+    layout_fractions,
+)
 from aperture_fab.validation.verdicts import (
     with_tried_lattice,
 )
@@ -115,6 +120,10 @@ class DesignResult:
         config's own lattice first; empty when it designed on one.
     evidence: the judged part's figures and page, from which report_files are made (None when
         not judged).
+    made_part: report.json's "made_part" block (`validate.judge_made_part`): the part as made
+        beside its best regular array, or None when not judged; with optimizer.lattice = "rival"
+        judged first, alone, to choose the lattice (a first part the second replaces is judged
+        no further).
     """
 
     config: Config
@@ -131,6 +140,7 @@ class DesignResult:
     report_files: dict[str, bytes] = field(default_factory=dict)
     lattices: tuple[dict[str, Any], ...] = ()
     evidence: Evidence | None = None
+    made_part: dict[str, Any] | None = None
 
     @property
     def verdicts(self) -> tuple[Verdict, ...]:
@@ -165,31 +175,43 @@ def design(
     part with the larger margin over its own best regular array is kept (`lattices` says
     both). The second design is not checkpointed: interrupted, the job stops and --resume
     starts again from the first design's checkpoint."""
+    if not images:
+        raise ValueError("no targets given; pass at least one image.")
+    if validation is not None and formats is not None and "stl" not in formats:
+        raise ValueError(f"formats = {list(formats)}: the validation judges the part's STL as "
+                         'written; add "stl" to formats, or validation = None.')
     names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
-    design_on = functools.partial(_design_on, images, names=names, fabrication=fabrication,
-                                  validation=validation, formats=formats, command=command,
-                                  progress=progress, stage=stage)
-    first = design_on(config, state=state, on_checkpoint=on_checkpoint)
-    plate = config.scene.plate
-    given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells)}
-    block = None if first.report is None else first.report.made_part
-    start = None
-    if config.optimizer.lattice == "rival" and block:
-        start = rival_start(config.scene, config.optimizer, block)
+    made = functools.partial(_made, images, names=names, fabrication=fabrication,
+                             progress=progress,
+                             cache=default_cache() if validation is not None else None)
+    finish = functools.partial(_finish, fabrication=fabrication, validation=validation,
+                               formats=formats, command=command, progress=progress, stage=stage)
+    first = made(config, state=state, on_checkpoint=on_checkpoint)
+    if config.optimizer.lattice != "rival":
+        return finish(first)
+    # The part as made judged alone first: a part the second design replaces needs no more.
+    first = _judged_as_made(first, fabrication, validation, stage)
+    block = first.made_part
+    start = rival_start(config.scene, config.optimizer, block) if block else None
     if start is None or not block:
-        return first
+        return finish(first)
     moved = dataclasses.replace(config, scene=start[0], optimizer=start[1])
+    plate = config.scene.plate
+    given = {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells),
+             "margin_db": block["margin_db"]}
     if stage is not None:
         nx, ny = moved.scene.plate.cells
         stage(f"design: the part as made is {margin_db(first):+.1f} dB against a regular "
               f"array of {moved.scene.plate.pitch_mm[0]:g} mm pitch; "
               f"designing again on its lattice ({nx} x {ny} cells) from its holes")
     try:
-        second = design_on(moved, replaces={**given, "margin_db": block["margin_db"]})
+        second = finish(made(moved), replaces=given)
     except Interrupted:
         raise KeyboardInterrupt from None  # the first design's checkpoint stays for --resume
-    result = better_part(first, second)
-    if result.lattices[0]["kept"] and result.evidence is not None:
+    if margin_db(second) > margin_db(first):
+        return better_part(first, second)
+    result = better_part(finish(first), second)
+    if result.evidence is not None:
         # The first part kept: its report says what the job tried instead (page drawn again).
         tried = {key: result.lattices[1][key] for key in ("pitch_mm", "cells", "margin_db")}
         evidence = result.evidence.with_report(with_tried_lattice(result.evidence.report,
@@ -199,29 +221,20 @@ def design(
     return result
 
 
-def _design_on(
+def _made(
     images: Sequence[np.ndarray],
     config: Config,
     *,
-    names: Sequence[str] | None = None,
+    names: tuple[str, ...],
     fabrication: FabricationSettings | None = None,
-    validation: ValidationSettings | None = None,
-    formats: Sequence[FormatName] | None = None,
-    command: Sequence[str] | None = None,
     state: dict[str, Any] | None = None,
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None,
     progress: bool = False,
-    stage: Callable[[str], None] | None = None,
-    replaces: dict[str, Any] | None = None,
+    cache: JudgedCache | None = None,
 ) -> DesignResult:
-    """`design` on the config's own plate; replaces: the part on the given cells this one
-    replaces, for its report (`aperture_fab.validation.judge.run_block`)."""
-    if not images:
-        raise ValueError("no targets given; pass at least one image.")
-    if validation is not None and formats is not None and "stl" not in formats:
-        raise ValueError(f"formats = {list(formats)}: the validation judges the part's STL as "
-                         'written; add "stl" to formats, or validation = None.')
-    names = tuple(names) if names is not None else tuple(f"target{i}" for i in range(len(images)))
+    """The plate designed on the config's own lattice, made into a part with the process
+    (quantized and built; its display fitted to it), neither written nor judged. cache: keeps
+    the baselines' views between runs (`evaluate`)."""
     scene, settings = config.scene, config.optimizer
     bounds = made = optics = None
     if fabrication is not None:
@@ -247,7 +260,7 @@ def _design_on(
     views, metrics = evaluate(renderer, targets, {
         "initial": initial_design(scene, targets, shown, settings, bounds),
         "optimized": result.optimum,
-    }, default_cache() if validation is not None else None)
+    }, cache)
     timings["evaluate_s"] = time.perf_counter() - start
     start = time.perf_counter()
     part = None if fabrication is None else make_part(result.open_fraction, scene, fabrication)
@@ -265,24 +278,61 @@ def _design_on(
                                max(MIN_FIT_ITERATIONS, settings.iterations // FIT_SHARE),
                                optics=optics, progress=progress)
         timings["fit_display_s"] = time.perf_counter() - start
+    return DesignResult(recorded_config(config, None), result, names, targets, views, metrics,
+                        part, built, timings)
+
+
+def _judged_as_made(result: DesignResult, fabrication: FabricationSettings | None,
+                    validation: ValidationSettings | None,
+                    stage: Callable[[str], None] | None = None) -> DesignResult:
+    """The result with its part as made judged beside its best regular array (`made_part`),
+    when there are a part and validation settings; nothing else judged or written."""
+    if result.part is None or fabrication is None or validation is None:
+        return result
+    if stage is not None:
+        stage("design: judging the part as made against the best regular pinhole arrays")
+    start = time.perf_counter()
+    shown = result.design.optimum[1] if result.built_displays is None else result.built_displays
+    block = judge_made_part(result.config.scene, result.config.optimizer, result.targets,
+                            result.part, fabrication.process, shown, validation, default_cache())
+    timings = {**result.timings_s, "made_part_s": time.perf_counter() - start}
+    return dataclasses.replace(result, made_part=block, timings_s=timings)
+
+
+def _finish(
+    result: DesignResult,
+    *,
+    fabrication: FabricationSettings | None = None,
+    validation: ValidationSettings | None = None,
+    formats: Sequence[FormatName] | None = None,
+    command: Sequence[str] | None = None,
+    progress: bool = False,
+    stage: Callable[[str], None] | None = None,
+    replaces: dict[str, Any] | None = None,
+) -> DesignResult:
+    """A made design's part written (`formats`; default every format, STEP only with
+    fabrication.step) and, with `validation`, judged as written, its made-part block kept when
+    judged already (`_judged_as_made`); replaces: the part on the given cells this one
+    replaces, for its report (`aperture_fab.validation.judge.run_block`)."""
+    part = result.part
     if part is None or fabrication is None:
-        return DesignResult(recorded_config(config, None), result, names, targets, views,
-                            metrics, part, built, timings)
+        return result
     announce = stage if stage is not None else (lambda _line: None)
     formats = tuple(formats) if formats is not None else part_formats(fabrication)
     announce(f"design: writing {', '.join(formats)} ({part.layout.count} holes)")
     start = time.perf_counter()
     files = part_bytes(part, fabrication, formats, progress)
-    timings["export_s"] = time.perf_counter() - start
-    made_part = DesignResult(
-        recorded_config(config, fabrication, formats, part.layout.outline_mm), result, names,
-        targets, views, metrics, part, built, timings, part_files=files)
+    made_part = dataclasses.replace(
+        result, config=recorded_config(result.config, fabrication, formats,
+                                       part.layout.outline_mm),
+        timings_s={**result.timings_s, "export_s": time.perf_counter() - start},
+        part_files=files)
     if validation is None:
         return made_part
     announce("design: validating the part as written (eye distribution, mesh re-trace, "
              "tolerances)")
     checked, evidence = judge_written(made_part, fabrication, validation, files["plate.stl"],
-                                      command, replaces)
+                                      command, replaces, result.made_part)
     return _with_judgement(made_part, checked, evidence)
 
 
@@ -421,7 +471,8 @@ def _with_judgement(result: DesignResult, checked: Validation, evidence: Evidenc
         per_target = [checked.metrics[variant][name] for name in result.names]
         metrics[variant] = {key: [m[key] for m in per_target] for key in ("mse", "psnr_db")}
     return dataclasses.replace(result, metrics=metrics, report=report,
-                               report_files=evidence_files(evidence), evidence=evidence)
+                               report_files=evidence_files(evidence), evidence=evidence,
+                               made_part=checked.made_part)
 
 
 def run_design(paths: Sequence[Path], out: Path, config: Config, *,

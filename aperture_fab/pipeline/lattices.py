@@ -23,7 +23,7 @@ __all__ = ["better_part", "margin_db", "rival_start"]
 def margin_db(result: DesignResult) -> float:
     """The part's smallest margin over its best regular array (dB): -inf when the part as made
     was not judged, +inf when no regular array is as bright at the eye."""
-    block = None if result.report is None else result.report.made_part
+    block = result.made_part
     if not block:
         return -math.inf
     return math.inf if block["margin_db"] is None else float(min(block["margin_db"]))
@@ -32,18 +32,19 @@ def margin_db(result: DesignResult) -> float:
 def better_part(first: DesignResult, second: DesignResult) -> DesignResult:
     """Of two designs on different lattices, the one whose part as made beats its own best
     regular array by more (the first on a tie), with both in `lattices` (each design's stage
-    seconds among them: the kept part's report times its own)."""
+    seconds among them: its report's, or the stages it ran when it was not judged in full; the
+    kept part's report times its own)."""
     kept = second if margin_db(second) > margin_db(first) else first
 
     def record(result: DesignResult) -> dict[str, Any]:
         plate = result.config.scene.plate
-        report = result.report
-        block = None if report is None else report.made_part
+        block = result.made_part
         return {"pitch_mm": list(plate.pitch_mm), "cells": list(plate.cells),
                 "p10_db": None if not block else list(block["part"]["p10_db"]),
                 "margin_db": None if not block else block["margin_db"],
                 "kept": result is kept,
-                "timings_s": None if report is None else dict(report.timings_s)}
+                "timings_s": dict(result.timings_s if result.report is None
+                                  else result.report.timings_s)}
 
     return dataclasses.replace(kept, lattices=(record(first), record(second)))
 

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from aperture_fab.config.config import Config
+from aperture_fab.config.settings import OptimizerSettings
 from aperture_fab.config.stages import YIELD_MARGIN_DB, ValidationSettings
 from aperture_fab.fabrication.layout import HoleLayout
 from aperture_fab.fabrication.mesh import PlateMesh
@@ -75,7 +76,8 @@ from aperture_fab.validation.made_part import made_part_block
 from aperture_fab.validation.robustness import EyeQuality, Variant, judge_eyes
 from aperture_fab.validation.variants import VARIANTS
 
-__all__ = ["BASELINES", "Validation", "baseline_views", "layout_fractions", "validate"]
+__all__ = ["BASELINES", "Validation", "baseline_views", "judge_made_part", "layout_fractions",
+           "validate"]
 
 #: Eye states each tolerance sample of a moving-eye design is judged over.
 TOLERANCE_EYE_STATES = 8
@@ -177,6 +179,7 @@ def validate(
     built_displays: np.ndarray | None = None,
     baselines: Mapping[str, np.ndarray] | None = None,
     cache: JudgedCache | None = None,
+    made_part: dict[str, Any] | None = None,
 ) -> Validation:
     """Validate a design and its part.
 
@@ -190,6 +193,8 @@ def validate(
     cache: keeps what does not depend on the part between runs: the regular family's
     judgements (`made_part_block`), the baselines' views and their figures over the eye
     distribution (`judge_eyes`), the random mask's views.
+    made_part: the part's `judge_made_part` block when the caller judged it already (the
+    design job does, to choose its lattice); None judges it here.
     """
     scene = config.scene
     device = resolve_device(config.optimizer.device)
@@ -256,17 +261,11 @@ def validate(
                 .cpu().double().numpy() for t in targets])),
         }, device=device, dtype=dtype, count=settings.eye_states, cache=cache)
         timings["eye_distribution_s"] = time.perf_counter() - start
-    made_part = None
-    if settings.eye_states > 0 and settings.made_copies > 0:
+    if made_part is None and settings.eye_states > 0 and settings.made_copies > 0:
         start = time.perf_counter()
-        try:
-            made_part = made_part_block(
-                scene, config.optimizer, targets, as_built,
-                np.stack([d.cpu().double().numpy() for d in shown]), process,
-                states=settings.eye_states, copies=settings.made_copies, seed=settings.seed,
-                device=device, dtype=dtype, cache=cache)
-        except UnmakeableError:
-            made_part = None  # a forced part: the process makes no regular family to compare
+        made_part = judge_made_part(scene, config.optimizer, targets, part, process,
+                                    np.stack([d.cpu().double().numpy() for d in shown]),
+                                    settings, cache)
         timings["made_part_s"] = time.perf_counter() - start
     tolerance = None
     if settings.tolerance_samples > 0:
@@ -275,6 +274,26 @@ def validate(
                                        settings.threshold_db, device, dtype)
         timings["tolerance_s"] = time.perf_counter() - start
     return Validation(views, metrics, mesh_stderr, tolerance, timings, eyes, made_part)
+
+
+def judge_made_part(scene: Scene, optimizer: OptimizerSettings, targets: np.ndarray,
+                    part: Part, process: Process, displays: np.ndarray,
+                    settings: ValidationSettings, cache: JudgedCache | None = None
+                    ) -> dict[str, Any] | None:
+    """report.json's "made_part" block (`made_part.made_part_block`) for a part showing
+    displays (T, C, H, W): its holes as made (the process's bias) over made copies x eye states
+    beside the best regular array; None when the settings skip it (no eye states or no made
+    copies) or the process makes no regular family (a forced part)."""
+    if settings.eye_states == 0 or settings.made_copies == 0:
+        return None
+    try:
+        return made_part_block(
+            scene, optimizer, targets, layout_fractions(part.layout, process.radius_bias_mm),
+            displays, process, states=settings.eye_states, copies=settings.made_copies,
+            seed=settings.seed, device=resolve_device(optimizer.device),
+            dtype=torch_dtype(optimizer.precision), cache=cache)
+    except UnmakeableError:
+        return None
 
 
 def _metrics(scene: Scene, views: dict[str, np.ndarray], targets: np.ndarray,
