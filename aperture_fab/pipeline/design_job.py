@@ -173,8 +173,9 @@ def design(
     pinhole array of a coarser pitch by less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed
     again on that array's lattice, from that array's holes (`lattices.rival_start`), and the
     part with the larger margin over its own best regular array is kept (`lattices` says
-    both). The second design is not checkpointed: interrupted, the job stops and --resume
-    starts again from the first design's checkpoint."""
+    both). The first part is judged as made alone to choose (`made_part`); one the second
+    replaces is neither written nor judged further. The second design is not checkpointed:
+    interrupted, the job stops and --resume starts again from the first design's checkpoint."""
     if not images:
         raise ValueError("no targets given; pass at least one image.")
     if validation is not None and formats is not None and "stl" not in formats:
@@ -322,18 +323,18 @@ def _finish(
     announce(f"design: writing {', '.join(formats)} ({part.layout.count} holes)")
     start = time.perf_counter()
     files = part_bytes(part, fabrication, formats, progress)
-    made_part = dataclasses.replace(
+    written = dataclasses.replace(
         result, config=recorded_config(result.config, fabrication, formats,
                                        part.layout.outline_mm),
         timings_s={**result.timings_s, "export_s": time.perf_counter() - start},
         part_files=files)
     if validation is None:
-        return made_part
+        return written
     announce("design: validating the part as written (eye distribution, mesh re-trace, "
              "tolerances)")
-    checked, evidence = judge_written(made_part, fabrication, validation, files["plate.stl"],
+    checked, evidence = judge_written(written, fabrication, validation, files["plate.stl"],
                                       command, replaces, result.made_part)
-    return _with_judgement(made_part, checked, evidence)
+    return _with_judgement(written, checked, evidence)
 
 
 #: Pupil points of the quick look check_eye_sees_display takes.
