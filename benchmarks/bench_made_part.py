@@ -24,7 +24,8 @@ images; each rival judged after half and all of them, at its best: `RIVAL_FIT_SH
 climbing over hole sizes from the first pass's best while the fitted p10 rises
 (`aperture_fab.validation.rival_search`):
 `made_part_block`, as the report does it with more eye states. The margin is the part's p10 less
-the best rival's p10 at equal or more light at the eye.
+the best rival's p10 at equal or more light at the eye, with its bootstrap interval over other
+made copies and eye states (`validation.margin_interval`).
 
 Also: the tolerance yield of the report (`validation.validate.tolerance_analysis`: process and
 assembly tolerances, each of --tolerance-samples draws (default 16, the report's) judged by its
@@ -65,6 +66,7 @@ from aperture_fab.pipeline.lattices import rival_start
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
+from aperture_fab.validation.margin_interval import COVERAGE
 from aperture_fab.validation.rival_search import RIVAL_PITCHES
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 
@@ -159,7 +161,8 @@ def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str
         row.update(best_pitch_mm=best["pitch_mm"], best_diameter_mm=best["diameter_mm"],
                    best_efficiency=best["efficiency"], best_eye_level=best["eye_level"],
                    best_p10_db=best["p10_db"][0],
-                   margin_db=block["margin_db"][0])
+                   margin_db=block["margin_db"][0],
+                   margin_interval_db=block["margin_interval_db"][0])
     return row
 
 
@@ -218,8 +221,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                  f"{row['best_p10_db']:.2f} dB ({row['best_pitch_mm']:g} mm, "
                  f"{row['best_diameter_mm'] * 1000:.0f} um, {row['best_efficiency']:.2%}, "
                  f"{row['best_eye_level']:.3%} at the eye)")
-              + (f"; margin {margin:+.2f} dB (goal +{GOAL_MARGIN_DB:g})" if margin is not None
-                 else "")
+              + (f"; margin {margin:+.2f} dB ({100 * COVERAGE:.0f} % interval "
+                 f"{row['margin_interval_db'][0]:+.2f} to {row['margin_interval_db'][1]:+.2f}; "
+                 f"goal +{GOAL_MARGIN_DB:g})" if margin is not None else "")
               + f"; yield {row['yield']:.0%} (goal {GOAL_YIELD:.0%}); optimizer "
               f"{row['optimizer_db']:.2f} against judged {row['judged_db']:.2f} dB (its loss; "
               f"goal within {GOAL_AGREEMENT_DB:g}); design "

@@ -317,6 +317,8 @@ def test_bench_made_part_quick(tmp_path: Path) -> None:
         if row.get("margin_db") is not None:
             assert row["best_eye_level"] >= row["eye_level"] * (1 - 1e-9)
             assert row["margin_db"] == pytest.approx(row["p10_db"] - row["best_p10_db"])
+            low, high = row["margin_interval_db"]
+            assert low <= high
         assert (tmp_path / f"made_part_{row['target']}.png").stat().st_size > 0
 
 

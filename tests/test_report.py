@@ -158,7 +158,7 @@ def made_block(count: int = len(TARGETS)) -> dict[str, Any]:
             "p50_db": [17.0] * count, "p90_db": [18.0] * count}
     return {"copies": 4, "states": 32, "neglected": ["wall scatter"], "part": figures,
             "regular": {"family": family, "fitted": family, "best": best},
-            "margin_db": [5.0] * count}
+            "margin_db": [5.0] * count, "margin_interval_db": [[4.2, 5.9]] * count}
 
 
 @pytest.fixture(scope="module")
@@ -943,3 +943,26 @@ def test_evidence_for_an_amended_report_draws_its_page_again() -> None:
     assert again.report.run == {**run, "tried": tried} and again.views_npz == b"views"
     with pytest.raises(ValueError, match="no run block"):
         with_tried_lattice(replace(judged, run=None), tried)
+
+
+def test_the_made_part_margin_carries_its_interval_in_the_verdict_page_and_schema() -> None:
+    """The margin's bootstrap interval (made_part "margin_interval_db") is in the made-part
+    verdict and on the page; the schema checks it and accepts a report from before it."""
+    built = build_report(**complete_inputs(), made_part=made_block())
+    judged = replace(built, verdicts=tuple(verdicts(built)))
+    made = next(v for v in judged.verdicts if v.topic == MADE_TOPIC)
+    assert "+5.0 dB (95 % interval +4.2 to +5.9 dB over other made copies and eye states)" \
+        in made.text
+    assert "95 % interval +4.2 to +5.9 / +4.2 to +5.9 dB" in report_html(judged, {})
+    report = judged.as_json()
+    validate_report(report)
+    older = copy.deepcopy(report)
+    del older["made_part"]["margin_interval_db"]
+    validate_report(older)
+    assert "interval" not in next(v for v in verdicts(Report.from_json(older))
+                                  if v.topic == MADE_TOPIC).text
+    for broken, error in (([[5.9, 4.2]] * len(TARGETS), ValueError), ([[4.2, 5.9]], TypeError)):
+        bad = copy.deepcopy(report)
+        bad["made_part"]["margin_interval_db"] = broken
+        with pytest.raises(error, match="margin_interval_db"):
+            validate_report(bad)

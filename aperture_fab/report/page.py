@@ -35,6 +35,7 @@ from aperture_fab.report.sections import (
     tolerance_table,
 )
 from aperture_fab.validation.formatting import NOT_COMPUTED, e, table
+from aperture_fab.validation.margin_interval import COVERAGE
 from aperture_fab.validation.report import (
     EYE_TOPIC,
     EYE_VARIANT_LABELS,
@@ -288,9 +289,14 @@ def made_html(block: Mapping[str, Any] | None, figures: Mapping[str, bytes]) -> 
         + f'<td class="n">{100 * white:.3g} %</td><td class="n">{100 * eye:.3g} %</td></tr>'
         for name, p10, p50, p90, white, eye in rows)
     margin = block.get("margin_db")
+    interval = block.get("margin_interval_db")
+    spread = "" if not interval else (
+        f"; {100 * COVERAGE:.0f} % interval "
+        + " / ".join(f"{low:+.1f} to {high:+.1f}" for low, high in interval)
+        + " dB over other made copies and eye states (a bootstrap of the judged ones)")
     note = ("" if margin is None else
             "<p>Margin over it (at equal or more light at the eye): <b>"
-            f"{' / '.join(f'{m:+.1f}' for m in margin)} dB</b> (per target), "
+            f"{' / '.join(f'{m:+.1f}' for m in margin)} dB</b> (per target){spread}, "
             f"{e(family_reach(block))}.</p>")
     return figure_grid([
         f"<p>PSNR after gain over {block['copies']} made copies (the process's radius and "

@@ -26,6 +26,7 @@ from aperture_fab.optics.scene import Scene
 from aperture_fab.optimize.optimizer import fit_display, fit_settings
 from aperture_fab.validation.judged_cache import JudgedCache
 from aperture_fab.validation.made_quality import judge_made
+from aperture_fab.validation.margin_interval import margin_interval_db
 from aperture_fab.validation.regular import (
     RegularArray,
     RegularFront,
@@ -69,7 +70,9 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
     pitches judged again with the display fitted like the part's (fit_iterations of
     `fit_display` on the same as-made loss; 0: elemental images), climbing over hole sizes
     (`climb_rivals`), each at its best of RIVAL_FIT_SHARES of the fit: the part meets its
-    rivals at their best. cache: keeps the family's judgements between runs
+    rivals at their best. "margin_interval_db" gives per target the bootstrap interval of the
+    margin over the best (`margin_interval.margin_interval_db`: other made copies and eye
+    states). cache: keeps the family's judgements between runs
     (`regular_front`; they do not depend on the part)."""
     renderer = Renderer(scene, device=device, dtype=dtype)
     optics = made_optics(scene, process)
@@ -129,4 +132,7 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
             "p10_db": fitted.p10[best].tolist(), "p50_db": fitted.p50[best].tolist(),
             "p90_db": fitted.p90[best].tolist()}
         block["margin_db"] = (part.percentile(10) - fitted.p10[best]).tolist()
+        if fitted.psnr_db:
+            block["margin_interval_db"] = margin_interval_db(
+                part.psnr_db, fitted.psnr_db[best], seed=seed).tolist()
     return block

@@ -186,7 +186,10 @@ def regular_arrays(scene: Scene, process: Process,
 class RegularFront:
     """The regular family judged: per array (A) its pitch and diameter (mm), white efficiency,
     light at the eye (`MadeQuality.eye_level`) and PSNR percentiles (p10, p50, p90 per target:
-    (A, T) each). "At least as bright" means at least as much light at the eye."""
+    (A, T) each). "At least as bright" means at least as much light at the eye.
+
+    psnr_db: per array the PSNR samples its percentiles come from ((T, copies, S) float64,
+    `MadeQuality.psnr_db`), or empty when they were not kept."""
 
     pitch_mm: np.ndarray
     diameter_mm: np.ndarray
@@ -195,6 +198,7 @@ class RegularFront:
     p10: np.ndarray
     p50: np.ndarray
     p90: np.ndarray
+    psnr_db: tuple[np.ndarray, ...] = ()
 
     def best_at(self, eye_level: float) -> int | None:
         """Index of the array with the best p10 (mean over targets) among those with at least
@@ -216,13 +220,17 @@ class RegularFront:
         pick = np.asarray(index, dtype=np.int64)
         return RegularFront(self.pitch_mm[pick], self.diameter_mm[pick], self.efficiency[pick],
                             self.eye_level[pick], self.p10[pick], self.p50[pick],
-                            self.p90[pick])
+                            self.p90[pick],
+                            tuple(self.psnr_db[i] for i in pick) if self.psnr_db else ())
 
     @staticmethod
     def joined(fronts: Sequence[RegularFront]) -> RegularFront:
-        """The arrays of `fronts`, in order."""
-        return RegularFront(*(np.concatenate([getattr(f, field.name) for f in fronts])
-                              for field in fields(RegularFront)))
+        """The arrays of `fronts`, in order (their PSNR samples when every front kept them)."""
+        joined = {field.name: np.concatenate([getattr(f, field.name) for f in fronts])
+                  for field in fields(RegularFront) if field.name != "psnr_db"}
+        kept = all(f.psnr_db for f in fronts)
+        return RegularFront(**joined, psnr_db=tuple(s for f in fronts for s in f.psnr_db)
+                            if kept else ())
 
     def as_dict(self) -> dict[str, list[float]]:
         """Plain lists for report.json: per array its pitch, diameter, efficiency, light at
@@ -268,7 +276,7 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
         raise ValueError("regular_front: a cache with a fit needs fit_key, the values the fit's "
                          "contents depend on (its settings), or judgements of other fits "
                          "would be read back.")
-    eff, level, p10, p50, p90 = [], [], [], [], []
+    eff, level, p10, p50, p90, samples = [], [], [], [], [], []
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     common = digest("fitted" if fit is not None else "elemental", targets, states, copies, seed,
                     dtype, torch.device(device).type, fit_key) if cache is not None else ""
@@ -313,8 +321,10 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
         p10.append(quality.percentile(10))
         p50.append(quality.percentile(50))
         p90.append(quality.percentile(90))
+        samples.append(quality.psnr_db)
         if progress is not None:
             progress(index + 1, len(arrays))
     return RegularFront(np.array([r.pitch_mm for r in arrays]),
                         np.array([r.array.diameter_mm for r in arrays]), np.array(eff),
-                        np.array(level), np.array(p10), np.array(p50), np.array(p90))
+                        np.array(level), np.array(p10), np.array(p50), np.array(p90),
+                        tuple(samples))

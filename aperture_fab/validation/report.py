@@ -31,7 +31,10 @@ by `report_json`):
                     "loss_psnr_db" (the same over the worst optimizer.tail_share of copies x
                     states: the optimizer's figure)}, "regular": {"family", "fitted": per array
                     lists, "best": {"pitch_mm", "diameter_mm", "efficiency", "eye_level",
-                    "p10_db", ...} or null}, "margin_db": per target or null}
+                    "p10_db", ...} or null}, "margin_db": per target or null,
+                    "margin_interval_db" (with a best array; absent in older reports): per
+                    target [low, high], the margin's bootstrap interval over other made copies
+                    and eye states (aperture_fab.validation.margin_interval)}
                     (aperture_fab.validation.made_part.made_part_block), or null
     verdicts        [{"topic", "level" (one of LEVELS), "text", "fixes" (what to change, most
                     effective first, none already applied; absent in older reports)}], most

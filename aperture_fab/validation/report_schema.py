@@ -251,6 +251,13 @@ def _check_made_part(block: Any) -> None:
         check_block(best, {"pitch_mm": "number", "diameter_mm": "number", **_MADE_FIGURES_SPEC},
                "made_part.regular.best")
         _check_per_target(block.get("margin_db"), count, "made_part.margin_db", "number")
+        interval = block.get("margin_interval_db")
+        if interval is not None:  # reports before 2026-12-07 have none
+            _check_per_target(interval, count, "made_part.margin_interval_db", "list")
+            for i, ends in enumerate(interval):
+                if not (_is_pair(ends, _is_number) and ends[0] <= ends[1]):
+                    raise ValueError(f"report made_part.margin_interval_db[{i}] = {ends!r:.80} "
+                                     "must be [low, high] dB with low <= high.")
 
 
 def _check_photometry(block: Any) -> None:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from aperture_fab.validation.light import contrast_verdict, light_verdict, lower_floor_fix
+from aperture_fab.validation.margin_interval import COVERAGE
 from aperture_fab.validation.report import EYE_TOPIC, LEVELS, Report, Verdict
 from aperture_fab.validation.variants import EYE_BASELINES
 
@@ -334,17 +335,28 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
              f"pitch, {1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g}"
              f" % light, {100 * best['eye_level']:.2g} % at the eye, display fitted) "
              f"{family_reach(block)}, reaches {min(best['p10_db']):.1f} dB")
+    found = f"{where}; {rival}: {margin:+.1f} dB{_interval_text(block)}"
     if margin >= MADE_MARGIN_DB:
-        return Verdict(MADE_TOPIC, "pass", f"{where}; {rival}: {margin:+.1f} dB, at least "
-                       f"{MADE_MARGIN_DB:g} dB better." + _tried_text(tried))
+        return Verdict(MADE_TOPIC, "pass", f"{found}, at least {MADE_MARGIN_DB:g} dB better."
+                       + _tried_text(tried))
     if margin >= 0:
-        return Verdict(MADE_TOPIC, "warn", f"{where}; {rival}: only {margin:+.1f} dB, less "
-                       f"than {MADE_MARGIN_DB:g} dB better: the coded plate buys little over "
-                       "a plain pinhole array." + _tried_text(tried),
-                       _made_fixes(report, block))
-    return Verdict(MADE_TOPIC, "fail", f"{where}; {rival}: {margin:+.1f} dB. A plain regular "
-                   "pinhole array would look better: do not make this part."
-                   + _tried_text(tried), _made_fixes(report, block))
+        return Verdict(MADE_TOPIC, "warn", f"{found}, less than {MADE_MARGIN_DB:g} dB better: "
+                       "the coded plate buys little over a plain pinhole array."
+                       + _tried_text(tried), _made_fixes(report, block))
+    return Verdict(MADE_TOPIC, "fail", f"{found}. A plain regular pinhole array would look "
+                   "better: do not make this part." + _tried_text(tried),
+                   _made_fixes(report, block))
+
+
+def _interval_text(block: Mapping[str, Any]) -> str:
+    """The bootstrap interval of the smallest margin (report.json's made_part
+    "margin_interval_db"), as a parenthesis; "" when the block has none."""
+    interval = block.get("margin_interval_db")
+    if not interval:
+        return ""
+    low, high = interval[min(range(len(block["margin_db"])), key=block["margin_db"].__getitem__)]
+    return (f" ({100 * COVERAGE:.0f} % interval {low:+.1f} to {high:+.1f} dB over other made "
+            "copies and eye states)")
 
 
 def _tried_text(tried: Mapping[str, Any] | None) -> str:
