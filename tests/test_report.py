@@ -966,3 +966,25 @@ def test_the_made_part_margin_carries_its_interval_in_the_verdict_page_and_schem
         bad["made_part"]["margin_interval_db"] = broken
         with pytest.raises(error, match="margin_interval_db"):
             validate_report(bad)
+
+
+@pytest.mark.parametrize(("margin", "interval", "level", "says"), [
+    (0.7, [-0.1, 1.3], "warn", True),    # the default digit's part (README)
+    (1.5, [0.9, 1.9], "warn", False),    # the default photo's
+    (-0.3, [-0.9, 0.2], "fail", True),
+    (-1.0, [-1.6, -0.4], "fail", False),
+    (5.0, [4.2, 5.9], "pass", False),
+])
+def test_the_made_part_verdict_says_when_the_margins_interval_holds_zero(
+        margin: float, interval: list[float], level: str, says: bool) -> None:
+    """A margin whose bootstrap interval holds 0 is not surely on its side of the regular
+    array, and the verdict says so; the interval is the smallest margin's."""
+    from aperture_fab.validation.verdicts import made_verdict
+
+    block = made_block(2)
+    block["margin_db"] = [margin + 2.0, margin]
+    block["margin_interval_db"] = [[interval[0] + 2.0, interval[1] + 2.0], interval]
+    verdict = made_verdict(block)
+    assert verdict.level == level
+    assert f"interval {interval[0]:+.1f} to {interval[1]:+.1f} dB" in verdict.text
+    assert ("The interval holds 0" in verdict.text) is says

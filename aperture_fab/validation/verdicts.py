@@ -335,28 +335,35 @@ def made_verdict(block: Mapping[str, Any], report: Report | None = None) -> Verd
              f"pitch, {1000 * best['diameter_mm']:.0f} um holes, {100 * best['efficiency']:.2g}"
              f" % light, {100 * best['eye_level']:.2g} % at the eye, display fitted) "
              f"{family_reach(block)}, reaches {min(best['p10_db']):.1f} dB")
-    found = f"{where}; {rival}: {margin:+.1f} dB{_interval_text(block)}"
+    interval = _worst_interval(block)
+    found = f"{where}; {rival}: {margin:+.1f} dB"
+    if interval is not None:
+        found += (f" ({100 * COVERAGE:.0f} % interval {interval[0]:+.1f} to {interval[1]:+.1f} "
+                  "dB over other made copies and eye states)")
+    # A margin whose interval holds 0 is not surely on its side of the array: say so.
+    either = ("" if interval is None or not interval[0] <= 0 <= interval[1] else
+              " The interval holds 0: other made copies and eye states could put the part on "
+              "either side of that array.")
     if margin >= MADE_MARGIN_DB:
         return Verdict(MADE_TOPIC, "pass", f"{found}, at least {MADE_MARGIN_DB:g} dB better."
                        + _tried_text(tried))
     if margin >= 0:
         return Verdict(MADE_TOPIC, "warn", f"{found}, less than {MADE_MARGIN_DB:g} dB better: "
-                       "the coded plate buys little over a plain pinhole array."
+                       "the coded plate buys little over a plain pinhole array." + either
                        + _tried_text(tried), _made_fixes(report, block))
     return Verdict(MADE_TOPIC, "fail", f"{found}. A plain regular pinhole array would look "
-                   "better: do not make this part." + _tried_text(tried),
+                   "better: do not make this part." + either + _tried_text(tried),
                    _made_fixes(report, block))
 
 
-def _interval_text(block: Mapping[str, Any]) -> str:
-    """The bootstrap interval of the smallest margin (report.json's made_part
-    "margin_interval_db"), as a parenthesis; "" when the block has none."""
+def _worst_interval(block: Mapping[str, Any]) -> tuple[float, float] | None:
+    """The bootstrap interval (low, high) dB of the smallest margin (report.json's made_part
+    "margin_interval_db"); None when the block has none."""
     interval = block.get("margin_interval_db")
     if not interval:
-        return ""
+        return None
     low, high = interval[min(range(len(block["margin_db"])), key=block["margin_db"].__getitem__)]
-    return (f" ({100 * COVERAGE:.0f} % interval {low:+.1f} to {high:+.1f} dB over other made "
-            "copies and eye states)")
+    return float(low), float(high)
 
 
 def _tried_text(tried: Mapping[str, Any] | None) -> str:
