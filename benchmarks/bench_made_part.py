@@ -2,7 +2,8 @@
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
-     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--quick] [--json PATH] [--plot DIR]
+     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-states 8]
+     [--quick] [--json PATH] [--plot DIR]
 
 For each target: the design job's `design` (optimize, quantize, build) with the preset and its
 process, then everything judged the one way the report judges the made part
@@ -39,6 +40,8 @@ With `optimizer.lattice = "rival"` (the default) a part that beats the best regu
 less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed again on that array's lattice, from
 its holes, and the part with the larger margin kept, as the design job does
 (`pipeline.lattices.rival_start`; both printed; "design s" is then both designs).
+With --tracked N, the kept part and its rivals also with a tracked display (per eye state the
+content solved by N MLEM iterations: `tracked_block`).
 Goals (issue 22): margin >= +4 dB (aim +6) on every target, yield >= 90 %,
 efficiency >= 2 % (aim 3 %), optimizer and judgement within 0.5 dB.
 """
@@ -55,19 +58,27 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from aperture_fab.config.config import Config, resolve
 from aperture_fab.config.stages import ValidationSettings
+from aperture_fab.fabrication.part import made_optics
 from aperture_fab.metrics import psnr_db
+from aperture_fab.optics.eyes import EyeStates, distribution_of
+from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
+from aperture_fab.optimize.optimizer import fit_display
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.pipeline.lattices import rival_start
 from aperture_fab.report.part_figures import figure_made_front
 from aperture_fab.targets import EXAMPLES
 from aperture_fab.validation.made_part import RIVAL_FIT_ITERATIONS, made_part_block
-from aperture_fab.validation.margin_interval import COVERAGE
-from aperture_fab.validation.rival_search import RIVAL_PITCHES
+from aperture_fab.validation.made_quality import MadeQuality
+from aperture_fab.validation.margin_interval import COVERAGE, margin_interval_db
+from aperture_fab.validation.regular import RegularFront, elemental, regular_arrays
+from aperture_fab.validation.rival_search import RIVAL_PITCHES, climb_rivals
+from aperture_fab.validation.tracked_quality import judge_tracked
 from aperture_fab.validation.validate import layout_fractions, tolerance_analysis
 
 DEFAULT_TARGETS = ("natural", "digit-3", "letter-A", "line-pairs")
@@ -79,6 +90,8 @@ GOAL_MARGIN_DB, GOAL_YIELD, GOAL_EFFICIENCY, GOAL_AGREEMENT_DB = 4.0, 0.9, 0.02,
 LOSS_TAIL = 10
 #: Eye states of the elemental-image pass over the whole family (a ranking, not the figure).
 FRONT_STATES = 16
+#: The tracked search's score of an array darker at the eye than the part: below any PSNR.
+DARK_SCORE = -1e6
 #: Draws of the tolerance yield by default: the report's (ValidationSettings).
 TOLERANCE_SAMPLES = ValidationSettings().tolerance_samples
 
@@ -90,28 +103,46 @@ def _value(text: str) -> Any:
         return text
 
 
+@dataclasses.dataclass(frozen=True)
+class Judged:
+    """One designed part, judged: its benchmark row and what the tracked judgement needs."""
+
+    row: dict[str, Any]
+    config: Config
+    targets: np.ndarray
+    made: np.ndarray
+    shown: np.ndarray
+
+
 def measure(name: str, args: argparse.Namespace) -> dict[str, Any]:
     """The design job's part for one target, judged; with optimizer.lattice = "rival", as the
     job does, designed again on the best regular array's lattice when that array beats it
     (`verdicts.RETRY_LATTICE_BELOW_DB`), the part with the larger margin kept (this
-    benchmark's judgement deciding, as the report's does in the job)."""
+    benchmark's judgement deciding, as the report's does in the job). With --tracked, the kept
+    part and its regular rivals judged with a tracked display too (`tracked_block`)."""
     overrides = {key: _value(value) for key, value in
                  (item.split("=", 1) for item in args.set)}
     if args.iterations is not None:
         overrides["optimizer.iterations"] = args.iterations
     config = resolve(args.preset, None, overrides)
-    row = _measure_on(name, config, args)
+    kept = _measure_on(name, config, args)
     start = None
     if config.optimizer.lattice == "rival":
-        start = rival_start(config.scene, config.optimizer, row["made_part"])
-    if start is None:
-        return row
-    other = _measure_on(name, dataclasses.replace(config, scene=start[0], optimizer=start[1]),
-                        args)
-    kept = other if _margin(other) > _margin(row) else row
-    lattices = [{"pitch_mm": r["pitch_mm"], "cells": r["cells"], "p10_db": r["p10_db"],
-                 "margin_db": r.get("margin_db"), "kept": r is kept} for r in (row, other)]
-    return {**kept, "lattices": lattices, "design_s": row["design_s"] + other["design_s"]}
+        start = rival_start(config.scene, config.optimizer, kept.row["made_part"])
+    row = kept.row
+    if start is not None:
+        first = kept
+        other = _measure_on(name, dataclasses.replace(config, scene=start[0],
+                                                      optimizer=start[1]), args)
+        kept = other if _margin(other.row) > _margin(first.row) else first
+        lattices = [{"pitch_mm": r.row["pitch_mm"], "cells": r.row["cells"],
+                     "p10_db": r.row["p10_db"], "margin_db": r.row.get("margin_db"),
+                     "kept": r is kept} for r in (first, other)]
+        row = {**kept.row, "lattices": lattices,
+               "design_s": first.row["design_s"] + other.row["design_s"]}
+    if args.tracked > 0:
+        row["tracked"] = tracked_block(kept, args)
+    return row
 
 
 def _margin(row: dict[str, Any]) -> float:
@@ -120,7 +151,7 @@ def _margin(row: dict[str, Any]) -> float:
     return math.inf if margins is None else min(margins)
 
 
-def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str, Any]:
+def _measure_on(name: str, config: Config, args: argparse.Namespace) -> Judged:
     """The part designed on config's own plate, judged."""
     panel_cd_m2 = config.photometry.panel_luminance_cd_m2
     fabrication = config.fabrication.with_flags(process=args.process)
@@ -163,6 +194,87 @@ def _measure_on(name: str, config: Config, args: argparse.Namespace) -> dict[str
                    best_p10_db=best["p10_db"][0],
                    margin_db=block["margin_db"][0],
                    margin_interval_db=block["margin_interval_db"][0])
+    return Judged(row, dataclasses.replace(config, fabrication=fabrication), targets, made,
+                  shown)
+
+
+def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
+    """The kept part and the regular family with a tracked display (`judge_tracked`: --tracked
+    MLEM iterations per eye state from the untracked content): the part over the benchmark's
+    copies x states; the rivals climbed over hole sizes as the report climbs them
+    (`climb_rivals`, at the pitches the elemental pass liked best), each from its fitted
+    display, judged tracked over --tracked-states states of one made copy; the best of them at
+    least as bright at the eye as the tracked part (and the untracked best rival) judged again
+    over copies x states. The margin is the part's tracked p10 less that array's."""
+    config, process = part.config, part.config.fabrication.process
+    scene, settings = config.scene, config.optimizer
+    distribution = distribution_of(scene.eye)
+    states = distribution.evaluation_states(args.states)
+    own = judge_tracked(Renderer(scene), part.targets, part.made, part.shown,
+                        made_optics(scene, process), states, args.copies,
+                        iterations=args.tracked)
+    arrays = regular_arrays(scene, process)
+    block = part.row["made_part"]
+    family = block["regular"]["family"]
+    elemental_p10 = np.asarray(family["p10_db"])[:, None]
+    front = RegularFront(*(np.asarray(family[key]) for key in
+                           ("pitch_mm", "diameter_mm", "efficiency", "eye_level")),
+                         elemental_p10, elemental_p10, elemental_p10)
+    search = distribution.evaluation_states(args.tracked_states)
+    target_t = torch.as_tensor(part.targets, dtype=torch.float32)
+    starts: dict[int, np.ndarray] = {}
+
+    def judge(index: int, judged_states: EyeStates = search, copies: int = 1) -> MadeQuality:
+        regular = arrays[index]
+        renderer = Renderer(regular.scene, max_radius_mm=regular.max_radius_mm)
+        if index not in starts:
+            starts[index], _ = fit_display(regular.scene, part.targets,
+                                           regular.array.open_fraction,
+                                           elemental(regular, target_t), settings,
+                                           args.fit_iterations, optics=regular.optics,
+                                           max_radius_mm=regular.max_radius_mm)
+        return judge_tracked(renderer, part.targets, regular.array.open_fraction,
+                             starts[index], regular.optics, judged_states, copies,
+                             iterations=args.tracked)
+
+    found: dict[int, MadeQuality] = {}
+
+    def p10(index: int) -> float:
+        # Tracked content is darker than untracked (MLEM scales it to a peak of 1), so the
+        # climb may start below the part's light: a darker array scores below every bright
+        # one, by its light, and the climb walks toward larger holes until one is bright.
+        found[index] = judge(index)
+        level = found[index].eye_level
+        if level >= own.eye_level * (1 - 1e-9):
+            return float(found[index].percentile(10).mean())
+        return DARK_SCORE + level
+
+    chosen = climb_rivals(front, 0.0, p10, args.rival_pitches)
+    best = block["regular"]["best"]
+    if best is not None:  # the untracked judgement's best rival, judged tracked too
+        untracked_best = next(i for i, a in enumerate(arrays)
+                              if math.isclose(a.pitch_mm, best["pitch_mm"], rel_tol=1e-9)
+                              and math.isclose(a.array.diameter_mm, best["diameter_mm"],
+                                               rel_tol=1e-9))
+        if untracked_best not in found:
+            chosen.append(untracked_best)
+            p10(untracked_best)
+    scores = {i: float(found[i].percentile(10).mean()) for i in chosen
+              if found[i].eye_level >= own.eye_level * (1 - 1e-9)}
+    row: dict[str, Any] = {
+        "iterations": args.tracked, "searched": len(chosen), "search_states": len(search),
+        "part": {"p10_db": float(own.percentile(10)[0]), "p50_db": float(own.percentile(50)[0]),
+                 "eye_level": own.eye_level},
+        "best": None, "margin_db": None}
+    if scores:
+        index = max(scores, key=scores.__getitem__)
+        rival = judge(index, states, args.copies)
+        row["best"] = {"pitch_mm": arrays[index].pitch_mm,
+                       "diameter_mm": arrays[index].array.diameter_mm,
+                       "p10_db": float(rival.percentile(10)[0]),
+                       "eye_level": rival.eye_level}
+        row["margin_db"] = row["part"]["p10_db"] - row["best"]["p10_db"]
+        row["margin_interval_db"] = margin_interval_db(own.psnr_db, rival.psnr_db)[0].tolist()
     return row
 
 
@@ -193,6 +305,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--rival-pitches", type=int, default=RIVAL_PITCHES,
                         help="lattice pitches whose hole sizes are climbed with a fitted "
                         "display (default: the report's)")
+    parser.add_argument("--tracked", type=int, default=0, metavar="ITERATIONS",
+                        help="also judge the kept part and its regular rivals with a tracked "
+                        "display: this many MLEM iterations per eye state (the device's "
+                        "default is 5; 0, the default: untracked only)")
+    parser.add_argument("--tracked-states", type=int, default=8,
+                        help="eye states of the tracked search over the rivals (one made copy)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--plot", type=Path, default=None, help="folder for the front plots")
@@ -234,6 +352,19 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                   f"{tried['p10_db']:.2f} dB, margin "
                   + ("none (no regular array as bright)" if tried["margin_db"] is None
                      else f"{tried['margin_db']:+.2f} dB"), flush=True)
+        tracked = row.get("tracked")
+        if tracked is not None:
+            best = tracked["best"]
+            print(f"  tracked ({tracked['iterations']} MLEM iterations per state): part p10 "
+                  f"{tracked['part']['p10_db']:.2f} dB, {tracked['part']['eye_level']:.3%} at the "
+                  "eye; best regular tracked at >= that light "
+                  + ("none" if best is None else
+                     f"{best['p10_db']:.2f} dB ({best['pitch_mm']:g} mm, "
+                     f"{best['diameter_mm'] * 1000:.0f} um, {best['eye_level']:.3%} at the eye; "
+                     f"{tracked['searched']} arrays searched); margin "
+                     f"{tracked['margin_db']:+.2f} dB ({100 * COVERAGE:.0f} % interval "
+                     f"{tracked['margin_interval_db'][0]:+.2f} to "
+                     f"{tracked['margin_interval_db'][1]:+.2f})"), flush=True)
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=2))
     if args.plot is not None:

@@ -304,10 +304,12 @@ def test_bench_gap_scale_quick(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_bench_made_part_quick(tmp_path: Path) -> None:
     """The part as made against the regular family: the figures are written, the light at the
-    eye is in cd/m2 for the panel, and the best rival is at least as bright at the eye."""
+    eye is in cd/m2 for the panel, and the best rival is at least as bright at the eye; so
+    with a tracked display (--tracked)."""
     out = tmp_path / "made.json"
     rows = _load("bench_made_part").main(["--quick", "--json", str(out), "--plot",
-                                          str(tmp_path)])
+                                          str(tmp_path), "--tracked", "1",
+                                          "--tracked-states", "2"])
     assert json.loads(out.read_text()) == rows
     for row in rows:
         for key in ("p10_db", "efficiency", "eye_level", "eye_cd_m2", "optimizer_db"):
@@ -320,6 +322,14 @@ def test_bench_made_part_quick(tmp_path: Path) -> None:
             low, high = row["margin_interval_db"]
             assert low <= high
         assert (tmp_path / f"made_part_{row['target']}.png").stat().st_size > 0
+        tracked = row["tracked"]
+        assert tracked["iterations"] == 1 and tracked["searched"] >= 1
+        assert _positive(tracked["part"]["p10_db"])
+        if tracked["best"] is not None:
+            assert tracked["best"]["eye_level"] >= tracked["part"]["eye_level"] * (1 - 1e-9)
+            assert tracked["margin_db"] == pytest.approx(
+                tracked["part"]["p10_db"] - tracked["best"]["p10_db"])
+            assert tracked["margin_interval_db"][0] <= tracked["margin_interval_db"][1]
 
 
 @pytest.mark.slow

@@ -330,7 +330,7 @@ def test_a_made_fix_names_the_best_rivals_lattice_when_it_is_coarser(rival_pitch
     found["regular"]["best"]["pitch_mm"] = rival_pitch_mm
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {}}, fabrication={"process": "photomask"},
-                             checked_part=None, run=None)
+                             eye_distribution=None, checked_part=None, run=None)
     fixes = made_verdict(found, report).fixes
     named = [fix for fix in fixes if "best regular array's lattice" in fix]
     if flags is None:
@@ -348,7 +348,8 @@ def test_lowering_the_floor_is_proposed_only_where_the_part_sits_at_it(efficienc
     found["part"]["efficiency"] = efficiency
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {"min_efficiency": 0.02}},
-                             fabrication={"process": "photomask"}, checked_part=None, run=None)
+                             fabrication={"process": "photomask"}, eye_distribution=None,
+                             checked_part=None, run=None)
     fixes = made_verdict(found, report).fixes
     assert (lower_floor_fix(0.02) in fixes) == named
 
@@ -364,7 +365,8 @@ def test_the_lattice_fix_is_left_out_where_the_design_job_tried_it(lattice, chec
     found["regular"]["best"]["pitch_mm"] = 2.5
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {"lattice": lattice}},
-                             fabrication={"process": "photomask"}, checked_part=checked_part,
+                             fabrication={"process": "photomask"}, eye_distribution=None,
+                             checked_part=checked_part,
                              run=None)
     fixes = made_verdict(found, report).fixes
     assert any("best regular array's lattice" in fix for fix in fixes) == named
@@ -453,7 +455,8 @@ def test_a_part_kept_over_its_rivals_lattice_says_what_the_job_tried(margin):
     found = block(-0.3)
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [0.5, 0.5], "cells": [40, 40]}},
                              config={"optimizer": {"lattice": "rival"}},
-                             fabrication={"process": "photomask"}, checked_part=None,
+                             fabrication={"process": "photomask"}, eye_distribution=None,
+                             checked_part=None,
                              run={"tried": {"pitch_mm": [2.5, 2.5], "cells": [8, 8],
                                             "margin_db": margin}})
     text = made_verdict(found, report).text
@@ -493,7 +496,8 @@ def test_a_part_made_on_its_rivals_lattice_says_what_it_replaces():
     found = block(0.7)
     report = SimpleNamespace(scene={"plate": {"pitch_mm": [2.5, 2.5], "cells": [8, 8]}},
                              config={"optimizer": {"lattice": "rival"}},
-                             fabrication={"process": "photomask"}, checked_part=None,
+                             fabrication={"process": "photomask"}, eye_distribution=None,
+                             checked_part=None,
                              run={"replaces": {"pitch_mm": [0.5, 0.5], "cells": [40, 40],
                                                "margin_db": [-0.3]}})
     text = made_verdict(found, report).text

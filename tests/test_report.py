@@ -988,3 +988,18 @@ def test_the_made_part_verdict_says_when_the_margins_interval_holds_zero(
     assert verdict.level == level
     assert f"interval {interval[0]:+.1f} to {interval[1]:+.1f} dB" in verdict.text
     assert ("The interval holds 0" in verdict.text) is says
+
+
+@pytest.mark.parametrize(("eyebox_mm", "proposed"), [(4.0, True), (1.0, False)])
+def test_the_made_part_fixes_propose_a_fitted_eyebox_and_no_tracked_display(
+        eyebox_mm: float, proposed: bool) -> None:
+    """A tracked display lifts the regular arrays too (it narrowed the margin on two of the
+    four default targets), so the made part's fixes leave it to the eye distribution's; a
+    fitted device's 1 mm eyebox is what raised the margin, proposed only when the eyebox is
+    wider."""
+    report = failing_report({})
+    report["eye_distribution"]["distribution"]["eyebox_mm"] = [eyebox_mm, eyebox_mm]
+    found = {v.topic: v.fixes for v in verdicts(Report.from_json(report))}
+    assert not any("tracked" in fix for fix in found[MADE_TOPIC])
+    assert any("tracked" in fix for fix in found["eye distribution"])
+    assert any("eyebox_mm = [1, 1]" in fix for fix in found[MADE_TOPIC]) is proposed
