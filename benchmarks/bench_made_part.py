@@ -2,7 +2,8 @@
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
-     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-states 8]
+     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-light 0]
+     [--tracked-states 8]
      [--quick] [--json PATH] [--plot DIR]
 
 For each target: the design job's `design` (optimize, quantize, build) with the preset and its
@@ -213,7 +214,7 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
     states = distribution.evaluation_states(args.states)
     own = judge_tracked(Renderer(scene), part.targets, part.made, part.shown,
                         made_optics(scene, process), states, args.copies,
-                        iterations=args.tracked)
+                        iterations=args.tracked, light_floor=args.tracked_light)
     arrays = regular_arrays(scene, process)
     block = part.row["made_part"]
     family = block["regular"]["family"]
@@ -236,7 +237,7 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
                                            max_radius_mm=regular.max_radius_mm)
         return judge_tracked(renderer, part.targets, regular.array.open_fraction,
                              starts[index], regular.optics, judged_states, copies,
-                             iterations=args.tracked)
+                             iterations=args.tracked, light_floor=args.tracked_light)
 
     found: dict[int, MadeQuality] = {}
 
@@ -263,7 +264,8 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
     scores = {i: float(found[i].percentile(10).mean()) for i in chosen
               if found[i].eye_level >= own.eye_level * (1 - 1e-9)}
     row: dict[str, Any] = {
-        "iterations": args.tracked, "searched": len(chosen), "search_states": len(search),
+        "iterations": args.tracked, "light_floor": args.tracked_light, "searched": len(chosen),
+        "search_states": len(search),
         "part": {"p10_db": float(own.percentile(10)[0]), "p50_db": float(own.percentile(50)[0]),
                  "eye_level": own.eye_level},
         "best": None, "margin_db": None}
@@ -310,6 +312,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="also judge the kept part and its regular rivals with a tracked "
                         "display: this many MLEM iterations per eye state (the device's "
                         "default is 5; 0, the default: untracked only)")
+    parser.add_argument("--tracked-light", type=float, default=0.0, metavar="SHARE",
+                        help="the tracked solve's light floor: the share of each plate's "
+                        "untracked light at the eye that its tracked content keeps (0, the "
+                        "default: none, each frame scaled to a peak of 1; 1: all)")
     parser.add_argument("--tracked-states", type=int, default=8,
                         help="eye states of the tracked search over the rivals (one made copy)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")
@@ -356,7 +362,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         tracked = row.get("tracked")
         if tracked is not None:
             best = tracked["best"]
-            print(f"  tracked ({tracked['iterations']} MLEM iterations per state): part p10 "
+            print(f"  tracked ({tracked['iterations']} MLEM iterations per state, light "
+                  f"floor {tracked['light_floor']:g}): part p10 "
                   f"{tracked['part']['p10_db']:.2f} dB, {tracked['part']['eye_level']:.3%} at the "
                   "eye; best regular tracked at >= that light "
                   + ("none" if best is None else

@@ -79,3 +79,18 @@ def test_it_is_deterministic_and_checks_its_copies(array):
     for copies in (0, 1.5):
         with pytest.raises(ValueError, match="copies"):
             judge_tracked(renderer, targets, a, shown, optics, states, copies=copies)
+
+
+def test_a_light_floor_keeps_the_untracked_light_at_the_eye(array):
+    """With the exact model, a floor of 1 keeps each state's light at least the untracked
+    content's, where the unfloored solve darkens it; both still gain over untracked."""
+    renderer, targets, regular, shown, states = array
+    exact = MadeOptics()
+    a = regular.array.open_fraction
+    untracked = judge_made(renderer, targets, a, shown, exact, states)
+    free = judge_tracked(renderer, targets, a, shown, exact, states, iterations=3)
+    held = judge_tracked(renderer, targets, a, shown, exact, states, iterations=3,
+                         light_floor=1.0)
+    assert free.eye_level < untracked.eye_level
+    assert held.eye_level >= untracked.eye_level * (1 - 1e-9)
+    assert float(held.psnr_db.mean()) > float(untracked.psnr_db.mean()) + 0.5

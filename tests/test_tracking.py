@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import tiny_config
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from aperture_fab.cli import EXIT_BAD_INPUT, main
@@ -18,7 +20,7 @@ from aperture_fab.metrics import gain_mse_states, psnr_db
 from aperture_fab.optics.baselines import elemental_display, regular_pinholes
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optimize.tracking import solve_display, tracked_views
+from aperture_fab.optimize.tracking import _brighten, solve_display, tracked_views
 from aperture_fab.targets import natural
 from tests.test_imports import CHILD, run_child
 
@@ -131,7 +133,65 @@ def test_zero_iterations_keep_the_start(tiny: dict) -> None:
     torch.testing.assert_close(solved[0], tiny["start"] / tiny["start"].max())
 
 
+def light_of(tiny: dict, display: torch.Tensor, state: EyeStates) -> float:
+    r = tiny["renderer"]
+    with torch.no_grad():
+        return float(r.render_states(tiny["plate"], r.display_stack(display), state).mean())
+
+
+@pytest.mark.parametrize("floor", [0.9, 1.0])
+def test_the_light_floor_keeps_the_start_light_and_still_sharpens(tiny: dict, floor: float
+                                                                  ) -> None:
+    state = eye(0.5, 0.0)
+    args = (tiny["renderer"], tiny["plate"], tiny["target"], state, tiny["start"])
+    free = solve_display(*args, iterations=3)[0]
+    held = solve_display(*args, iterations=3, light_floor=floor)[0]
+    start_light = light_of(tiny, tiny["start"], state)
+    # Unfloored MLEM darkens the view; the floor holds it (the renderer's view is linear in
+    # the display, so the solve's light A^T 1 . d is the rendered mean, to rounding).
+    assert light_of(tiny, free, state) < 0.85 * start_light
+    assert light_of(tiny, held, state) >= floor * start_light * (1 - 1e-9)
+    assert float(held.min()) >= 0 and float(held.max()) == pytest.approx(1.0)
+    assert psnr_of(tiny, held, state) > psnr_of(tiny, tiny["start"], state) + 1
+
+
+def test_a_floor_below_the_free_solves_light_changes_nothing(tiny: dict) -> None:
+    args = (tiny["renderer"], tiny["plate"], tiny["target"], eye(0.5, 0.0), tiny["start"])
+    torch.testing.assert_close(solve_display(*args, iterations=2, light_floor=1e-6),
+                               solve_display(*args, iterations=2), rtol=0, atol=0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), share=st.floats(0.0, 1.0))
+def test_brighten_takes_the_smallest_scale_that_reaches_the_goal(seed: int, share: float
+                                                                  ) -> None:
+    rng = np.random.default_rng(seed)
+    d = torch.as_tensor(rng.random((1, 6, 7)) ** 3)
+    column = torch.as_tensor(rng.random((1, 6, 7)))
+    seen = torch.ones_like(d, dtype=torch.bool)
+    goal = share * float(column.sum())  # at most every pixel at 1
+    out = _brighten(d, column, seen, goal)
+    peak_one = d / d.max()
+
+    def light(x: torch.Tensor) -> float:
+        return float((column * x).sum())
+
+    assert float(out.min()) >= 0 and float(out.max()) <= 1
+    if light(peak_one) >= goal:
+        torch.testing.assert_close(out, peak_one)
+    else:  # exactly the goal (bisection), by scaling and saturating the peak-1 content
+        assert light(out) == pytest.approx(goal, rel=1e-6)
+        lit = out < 1
+        if bool(lit.any()):
+            k = float(out[lit].max() / peak_one[lit].max())
+            torch.testing.assert_close(out, (peak_one * k).clamp(max=1))
+        else:  # every pixel saturated
+            torch.testing.assert_close(out, torch.ones_like(out))
+
+
 @pytest.mark.parametrize(("change", "message"), [
+    ({"light_floor": 1.5}, "light_floor = 1.5 is out of range"),
+    ({"light_floor": 0.5, "method": "adam"}, "light_floor = 0.5 needs method = 'mlem'"),
     ({"iterations": -1}, "iterations = -1 is out of range"),
     ({"iterations": 2.5}, "iterations = 2.5"),
     ({"method": "newton"}, "method = 'newton' is not allowed"),
@@ -167,9 +227,11 @@ def test_display_writes_the_frame_and_prints_both_psnrs(
     with Image.open(out) as im:
         assert im.size == (32, 32)  # the display's pixels (TINY)
     match = re.search(r"PSNR after gain: ([\d.]+) dB untracked -> ([\d.]+) dB tracked "
-                      r"\(3 iterations, solved in [\d.]+ s\)", text)
+                      r"\(3 iterations, solved in [\d.]+ s\); light at the eye ([\d.]+) of "
+                      r"the untracked display's \(floor 1\)", text)
     assert match is not None, text
     assert float(match[2]) >= float(match[1])
+    assert float(match[3]) >= 1 - 0.005  # the default floor keeps the untracked light
     assert "eye at (0.5, -0.25) mm, pupil 3 mm, focus infinity" in text
 
 
@@ -198,6 +260,8 @@ def test_display_takes_every_kind_of_part(designed: Path, tmp_path: Path, part: 
      "--iterations -1 is out of range"),
     (["{d}/holes.csv", "{d}/marker.png", "--eye", "0,0", "--pupil", "4",
       "--target-index", "2"], "--target-index 2"),
+    (["{d}/holes.csv", "{d}/marker.png", "--eye", "0,0", "--pupil", "4",
+      "--light-floor", "2"], "--light-floor 2.0 is out of range"),
     (["{d}/holes.csv", "{d}/marker.png", "--eye", "0,0", "--pupil", "4", "--config",
       "{d}/none.toml"], "none.toml"),
 ])

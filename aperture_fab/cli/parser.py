@@ -94,8 +94,10 @@ examples:
 
 Tracked display: the device knows the pupil's position and size and shows content solved for
 that eye state, starting from the design's (untracked) content; the plate stays as made (the
-process's radius bias applied). The solver is MLEM (Richardson-Lucy); it prints the PSNR after
-gain of the view with the untracked and the tracked content, and the solve time (the first
+process's radius bias applied). The solver is MLEM (Richardson-Lucy), holding the frame's light
+at the eye at --light-floor of the untracked content's (its brightest pixels saturate where
+needed); it prints the PSNR after gain of the view with the untracked and the tracked content,
+the frame's light as a share of the untracked content's, and the solve time (the first
 solve of a process also loads the CPU kernels; per-frame latency: benchmarks/bench_display.py).
 See docs/tracking.md. --refit MEASURED_FOLDER (what `measure` wrote) re-fits the untracked
 content to the plate as made and prints how much of the tolerance loss (nominal as built
@@ -245,6 +247,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the config's)")
     p.add_argument("--iterations", type=int, default=None, metavar="N",
                    help="solver iterations (default 5; 0: the untracked display)")
+    p.add_argument("--light-floor", type=float, default=None, metavar="SHARE",
+                   help="the share of the untracked display's light at the eye the frame "
+                   "keeps (default 1: as bright as the untracked content; 0: no floor, the "
+                   "sharpest frame, often several times darker)")
     p.add_argument("--config", type=Path, metavar="FILE.toml",
                    help="the design's config (default: design.toml beside PART)")
     p.add_argument("--target-index", type=int, default=0, metavar="N",

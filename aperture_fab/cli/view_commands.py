@@ -93,14 +93,16 @@ def cmd_display(args: argparse.Namespace) -> int:
     frame = run_display(
         args.part, args.target[0], eye_mm=parse_pair_mm(args.eye, "--eye"), pupil_mm=args.pupil,
         target_options=target_options(args),
-        focus_mm=focus, iterations=args.iterations, config_path=args.config,
+        focus_mm=focus, iterations=args.iterations, light_floor=args.light_floor,
+        config_path=args.config,
         target_index=args.target_index, process=args.process, out=args.out)
     x, y = frame.eye_mm
     height, width = frame.display.shape[1:]
     focus_text = "infinity" if frame.focus_mm is None else f"{frame.focus_mm:g} mm"
     args.output.detail(f"PSNR after gain: {frame.start_psnr_db:.2f} dB untracked -> "
                        f"{frame.psnr_db:.2f} dB tracked ({frame.iterations} iterations, solved "
-                       f"in {frame.solve_s:.2f} s)")
+                       f"in {frame.solve_s:.2f} s); light at the eye {frame.light_share:.2f} "
+                       f"of the untracked display's (floor {frame.light_floor:g})")
     args.output.result(f"wrote {frame.path}: {width} x {height} display frame for the eye at "
                        f"({x:g}, {y:g}) mm, pupil {frame.pupil_mm:g} mm, focus {focus_text}")
     return 0

@@ -223,6 +223,8 @@ class DisplayFrame:
     psnr_db: the same with the solved (tracked) frame.
     solve_s: seconds of the solve alone (renderer built; the first solve of a process also
         loads the CPU kernels). iterations: solver iterations.
+    light_share: the frame's light at the eye (the mean of its view) over the untracked
+        display's; light_floor: the floor the solve held it at (0: none).
     eye_mm, pupil_mm, focus_mm (None: infinity): the eye state. path: the PNG written.
     """
 
@@ -231,6 +233,8 @@ class DisplayFrame:
     psnr_db: float
     solve_s: float
     iterations: int
+    light_share: float
+    light_floor: float
     eye_mm: tuple[float, float]
     pupil_mm: float
     focus_mm: float | None
@@ -239,6 +243,10 @@ class DisplayFrame:
 
 #: Most solver iterations `display` accepts (each costs a forward and a backward pass).
 MAX_DISPLAY_ITERATIONS = 1000
+#: The share of the untracked display's light at the eye a `display` frame keeps by default: all
+#: of it, so that frames for a moving eye are as bright as the untracked content and one
+#: another (unfloored, MLEM's frames are 3 to 50 times darker, by state; docs/tracking.md).
+DISPLAY_LIGHT_FLOOR = 1.0
 
 
 def _check_eye_state(scene: Scene, eye_mm: tuple[float, float], pupil_mm: float,
@@ -272,6 +280,7 @@ def run_display(
     pupil_mm: float,
     focus_mm: float | Literal["infinity"] | None = None,
     iterations: int | None = None,
+    light_floor: float | None = None,
     config_path: Path | None = None,
     target_index: int = 0,
     process: str | None = None,
@@ -286,7 +295,8 @@ def run_display(
     target_index), or the target itself when the config shows targets; it fits the view to
     TARGET. eye_mm: the pupil centre (x, y) in mm in the scene frame; pupil_mm: its diameter;
     focus_mm: "infinity", a distance in mm, or None for the config's. iterations: default
-    tracking.DEFAULT_ITERATIONS.
+    tracking.DEFAULT_ITERATIONS. light_floor: the share of the untracked display's light at the
+    eye the frame keeps (default DISPLAY_LIGHT_FLOOR; 0: none, the frame scaled to a peak of 1).
     """
     from aperture_fab.optics.eyes import EyeStates
     from aperture_fab.optimize.tracking import DEFAULT_ITERATIONS, tracked_views
@@ -303,6 +313,12 @@ def run_display(
         raise ValueError(f"--iterations {iterations!r} is out of range; allowed: a whole number "
                          f"from 0 to {MAX_DISPLAY_ITERATIONS} (0 shows the untracked display). "
                          f"A few are enough: the default is {DEFAULT_ITERATIONS}.")
+    light_floor = DISPLAY_LIGHT_FLOOR if light_floor is None else light_floor
+    if not (isinstance(light_floor, (int, float)) and not isinstance(light_floor, bool)
+            and 0 <= light_floor <= 1):
+        raise ValueError(f"--light-floor {light_floor!r} is out of range; allowed: a share from "
+                         "0 (no floor: the sharpest frame, scaled to a peak of 1, often much "
+                         f"darker) to 1 (the untracked display's light kept, the default).")
     fabrication = config.fabrication.with_flags(process=process)
     design = design_beside(config_path, part, kind)
     if design is not None:
@@ -324,8 +340,15 @@ def run_display(
                       np.array([0.0 if focus is None else 1000.0 / focus]), np.zeros((1, 2)),
                       np.ones(1))
     began = time.perf_counter()
-    solved = tracked_views(renderer, a, view_targets[0], state, start, iterations)
+    solved = tracked_views(renderer, a, view_targets[0], state, start, iterations,
+                           light_floor=float(light_floor))
     solve_s = time.perf_counter() - began
+    with torch.no_grad():
+        start_view = renderer.render_states(torch.as_tensor(a, dtype=dtype, device=device),
+                                            renderer.display_stack(torch.as_tensor(
+                                                start, dtype=dtype, device=device).clamp(0, 1)),
+                                            state)
+    light_share = float(solved.views[0].mean()) / float(start_view.mean())
     frame = solved.displays[0].detach().cpu().double().numpy()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -334,5 +357,5 @@ def run_display(
                          "another --out.") from err
     write_atomic(path, encode_png(np.clip(frame, 0, 1)))
     return DisplayFrame(frame, float(solved.start_psnr_db[0]), float(solved.psnr_db[0]),
-                        solve_s, iterations, (float(eye_mm[0]), float(eye_mm[1])),
-                        float(pupil_mm), focus, path)
+                        solve_s, iterations, light_share, float(light_floor),
+                        (float(eye_mm[0]), float(eye_mm[1])), float(pupil_mm), focus, path)

@@ -29,14 +29,17 @@ __all__ = ["judge_tracked"]
 def judge_tracked(renderer: Renderer, targets: np.ndarray, open_fraction: np.ndarray,
                   displays: np.ndarray, optics: MadeOptics, states: EyeStates,
                   copies: int = MADE_COPIES, seed: int = 0,
-                  iterations: int = DEFAULT_ITERATIONS) -> MadeQuality:
+                  iterations: int = DEFAULT_ITERATIONS, light_floor: float = 0.0
+                  ) -> MadeQuality:
     """Judge a plate of made open fractions (rows, cols) for targets (T, C, ny, nx) with a
     tracked display: for each target and eye state of `states`, the content solved for that
     state by `iterations` MLEM iterations from the untracked display (displays: (T, C, H, W));
     then `copies` made copies (the nominal one when the process has no random error), each
     shown, per state, that state's content. 0 iterations judges the untracked display (scaled
-    to a peak of 1: the PSNR after gain is `judge_made`'s). The light at the eye is the mean
-    view of the solved contents; the efficiency, the copies' white view, is `judge_made`'s."""
+    to a peak of 1: the PSNR after gain is `judge_made`'s). light_floor: the share of the
+    untracked content's light that each solved content keeps (`solve_display`; 0: none). The
+    light at the eye is the mean view of the solved contents; the efficiency, the copies' white
+    view, is `judge_made`'s."""
     if not (isinstance(copies, int) and copies >= 1):
         raise ValueError(f"copies = {copies!r} must be a whole number >= 1.")
     dtype, device = renderer.dtype, renderer.device
@@ -49,7 +52,8 @@ def judge_tracked(renderer: Renderer, targets: np.ndarray, open_fraction: np.nda
     level = np.zeros((len(targets), count, len(states)))
     for t, display in enumerate(displays):
         target = torch.as_tensor(targets[t], dtype=dtype, device=device)
-        solved = solve_display(renderer, a, target, states, display, iterations)
+        solved = solve_display(renderer, a, target, states, display, iterations,
+                               light_floor=light_floor)
         with torch.no_grad():
             for s in range(len(states)):
                 state = states.subset([s])
