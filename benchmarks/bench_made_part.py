@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A
      line-pairs] [--preset near-eye] [--set KEY=VALUE ...] [--process NAME] [--states 32]
-     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-light 0]
+     [--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-light 1]
      [--tracked-states 8]
      [--quick] [--json PATH] [--plot DIR]
 
@@ -42,7 +42,8 @@ less than `verdicts.RETRY_LATTICE_BELOW_DB` is designed again on that array's la
 its holes, and the part with the larger margin kept, as the design job does
 (`pipeline.lattices.rival_start`; both printed; "design s" is then both designs).
 With --tracked N, the kept part and its rivals also with a tracked display (per eye state the
-content solved by N MLEM iterations: `tracked_block`).
+content solved by N MLEM iterations holding --tracked-light of each plate's untracked light at
+the eye: `tracked_block`).
 Goals (issue 22): margin >= +4 dB (aim +6) on every target, yield >= 90 %,
 efficiency >= 2 % (aim 3 %), optimizer and judgement within 0.5 dB.
 """
@@ -70,6 +71,7 @@ from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.photometry import MESOPIC_UPPER_CD_M2
 from aperture_fab.optimize.optimizer import fit_display
+from aperture_fab.optimize.tracking import DISPLAY_LIGHT_FLOOR
 from aperture_fab.pipeline.design_job import design
 from aperture_fab.pipeline.lattices import rival_start
 from aperture_fab.report.part_figures import figure_made_front
@@ -312,10 +314,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="also judge the kept part and its regular rivals with a tracked "
                         "display: this many MLEM iterations per eye state (the device's "
                         "default is 5; 0, the default: untracked only)")
-    parser.add_argument("--tracked-light", type=float, default=0.0, metavar="SHARE",
+    parser.add_argument("--tracked-light", type=float, default=DISPLAY_LIGHT_FLOOR,
+                        metavar="SHARE",
                         help="the tracked solve's light floor: the share of each plate's "
-                        "untracked light at the eye that its tracked content keeps (0, the "
-                        "default: none, each frame scaled to a peak of 1; 1: all)")
+                        "untracked light at the eye that its tracked content keeps (default "
+                        "1, all of it, as `aperture-fab display` keeps it; 0: none, each "
+                        "frame scaled to a peak of 1)")
     parser.add_argument("--tracked-states", type=int, default=8,
                         help="eye states of the tracked search over the rivals (one made copy)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: one target, tiny")

@@ -131,8 +131,8 @@ EXAMPLES: dict[str, str] = {
         _SYNOPSIS,
     ".venv/bin/python benchmarks/bench_made_part.py [--targets natural digit-3 letter-A "
     "line-pairs] [--preset near-eye] [--process NAME] [--set KEY=VALUE ...] [--states 32] "
-    "[--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-states 8] "
-    "[--quick] [--json PATH] [--plot DIR]":
+    "[--copies 4] [--rival-pitches 3] [--fit-iterations 20] [--tracked N] [--tracked-light 1] "
+    "[--tracked-states 8] [--quick] [--json PATH] [--plot DIR]":
         _SYNOPSIS,
 }
 

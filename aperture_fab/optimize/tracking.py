@@ -86,7 +86,8 @@ from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.descent import Adam
 
-__all__ = ["DEFAULT_ITERATIONS", "Solver", "TrackedViews", "solve_display", "tracked_views"]
+__all__ = ["DEFAULT_ITERATIONS", "DISPLAY_LIGHT_FLOOR", "Solver", "TrackedViews", "solve_display",
+           "tracked_views"]
 
 Solver = Literal["mlem", "adam"]
 SOLVERS: tuple[Solver, ...] = ("mlem", "adam")
@@ -101,6 +102,10 @@ START_FLOOR = 1e-3
 SEEN_SHARE = 1e-4
 #: View pixels are floored at this share of the target's peak before MLEM divides by them.
 VIEW_FLOOR = 1e-3
+#: The light floor a device's frames use (`aperture-fab display`): all of the untracked light,
+#: so that frames for a moving eye are as bright as the untracked content and as one another
+#: (unfloored, MLEM's frames are 3 to 50 times darker, by state: the module docstring, "Light").
+DISPLAY_LIGHT_FLOOR = 1.0
 #: Bisection steps of the light floor's scale (in log k: 2^-40 of its range).
 BRIGHTEN_STEPS = 40
 #: Projected Adam's learning rate (the near-eye preset's).

@@ -243,10 +243,6 @@ class DisplayFrame:
 
 #: Most solver iterations `display` accepts (each costs a forward and a backward pass).
 MAX_DISPLAY_ITERATIONS = 1000
-#: The share of the untracked display's light at the eye a `display` frame keeps by default: all
-#: of it, so that frames for a moving eye are as bright as the untracked content and one
-#: another (unfloored, MLEM's frames are 3 to 50 times darker, by state; docs/tracking.md).
-DISPLAY_LIGHT_FLOOR = 1.0
 
 
 def _check_eye_state(scene: Scene, eye_mm: tuple[float, float], pupil_mm: float,
@@ -299,7 +295,11 @@ def run_display(
     eye the frame keeps (default DISPLAY_LIGHT_FLOOR; 0: none, the frame scaled to a peak of 1).
     """
     from aperture_fab.optics.eyes import EyeStates
-    from aperture_fab.optimize.tracking import DEFAULT_ITERATIONS, tracked_views
+    from aperture_fab.optimize.tracking import (
+        DEFAULT_ITERATIONS,
+        DISPLAY_LIGHT_FLOOR,
+        tracked_views,
+    )
 
     kind = part_kind(part)
     path = _png_out(out, [target])

@@ -88,16 +88,16 @@ def _optimizer(report: Report | None) -> Mapping[str, Any]:
 
 def tracked_fix(optimizer: Mapping[str, Any]) -> list[str]:
     """A tracked display, unless the design already has one. Measured on the four default
-    parts as made (`benchmarks/bench_made_part.py --tracked 5`, 2026-12-07): p10 up by 2.1 to
-    10 dB, the light at the eye down 5 to 10 times (MLEM scales the solved content to a peak
-    of 1). Not a made-part fix: against regular arrays tracked the same way the margin fell on
-    the photo and the letter (+1.5 -> +0.4 dB, +0.7 -> -0.6)."""
+    parts as made (`benchmarks/bench_made_part.py --tracked 5`, 2026-12-07, the frames holding
+    the untracked light as `aperture-fab display` does): p10 up by 1.6 to 6.0 dB. Not a
+    made-part fix: against regular arrays tracked the same way, at equal light, the margin
+    moved from +1.5 / +0.7 / +0.7 / +2.2 dB to +0.2 / +3.8 / -1.1 / +2.4."""
     if optimizer.get("tracking") == "tracked":
         return []
     return ['Use a tracked display: optimizer.tracking = "tracked", shown with `aperture-fab '
             "display` (its content follows the tracked eye; the device needs an eye "
-            "tracker). On the default parts it raised the 10th percentile by 2 to 10 dB, at "
-            "a fifth to a tenth of the light at the eye (README, \"The part as made\")."]
+            "tracker). On the default parts it raised the 10th percentile by 1.6 to 6 dB at "
+            "the untracked content's light at the eye (README, \"The part as made\")."]
 
 
 #: An eyebox this wide or less is a device that sits where it was fitted to its wearer. The
