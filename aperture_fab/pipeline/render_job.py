@@ -318,7 +318,7 @@ def run_display(
             and 0 <= light_floor <= 1):
         raise ValueError(f"--light-floor {light_floor!r} is out of range; allowed: a share from "
                          "0 (no floor: the sharpest frame, scaled to a peak of 1, often much "
-                         f"darker) to 1 (the untracked display's light kept, the default).")
+                         "darker) to 1 (the untracked display's light kept, the default).")
     fabrication = config.fabrication.with_flags(process=process)
     design = design_beside(config_path, part, kind)
     if design is not None:
