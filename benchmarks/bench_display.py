@@ -1,7 +1,7 @@
 """Latency and quality of tracked displays (aperture_fab.optimize.tracking.solve_display) per frame.
 
 Run: .venv/bin/python benchmarks/bench_display.py [--device all|cpu|cuda] [--repeats 5]
-     [--iterations 1 2 5 10] [--compare] [--quick] [--json PATH]
+     [--iterations 1 2 5 10] [--compare] [--light-floors 0 0.5 1] [--quick] [--json PATH]
 
 Scene: the `near-eye` preset (400 x 400 display, 80 x 80 cells, 128 x 128 view), its regular
 pinhole plate (`baselines.regular_pinholes`), target `natural` (RGB) resampled to the view grid;
@@ -19,6 +19,10 @@ the nominal eye (`baselines.elemental_display`).
 - --compare: PSNR after gain of every iterate, 0 to 10 iterations, for MLEM and projected Adam
   at a few eye states (the measurement behind the solver choice in
   aperture_fab/optimize/tracking.py).
+- --light-floors F ...: at the same eye states, the default iterations, PSNR after gain and the
+  view's light at the eye as a share of the untracked display's for each light floor F
+  (`solve_display(light_floor=F)`: 0, each frame scaled to a peak of 1; 1, the untracked light
+  kept, as `aperture-fab display` does).
 
 Devices: the CPU (fused Numba kernels) and, when torch.cuda.is_available(), CUDA (the torch
 path; a new eye state builds its pair table, which is inside the frame time). --quick (the
@@ -127,6 +131,29 @@ def compare(case: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def light_floors(case: dict[str, Any], floors: Sequence[float], states: Sequence[
+        tuple[tuple[float, float], float]]) -> list[dict[str, Any]]:
+    """PSNR after gain and the light at the eye (over the untracked display's) per floor."""
+    renderer, plate = case["renderer"], case["plate"]
+    rows = []
+    for offset, pupil in states:
+        state = eye_state(offset, pupil)
+        with torch.no_grad():
+            untracked = renderer.render_states(plate, renderer.display_stack(case["start"]),
+                                               state)
+        row: dict[str, Any] = {"offset_mm": list(offset), "pupil_mm": pupil,
+                               "iterations": DEFAULT_ITERATIONS, "floors": []}
+        for floor in floors:
+            solved = tracked_views(renderer, plate, case["target"], state, case["start"],
+                                   DEFAULT_ITERATIONS, light_floor=floor)
+            row["untracked_psnr_db"] = float(solved.start_psnr_db[0])
+            row["floors"].append({"light_floor": floor, "psnr_db": float(solved.psnr_db[0]),
+                                  "light_share": float(solved.views[0].mean())
+                                  / float(untracked.mean())})
+        rows.append(row)
+    return rows
+
+
 def environment() -> dict[str, Any]:
     """Versions, threads, CPUs and machine load (timings on a busy machine are noisy)."""
     return {
@@ -141,7 +168,8 @@ def environment() -> dict[str, Any]:
 
 
 def measure_device(device: torch.device, iteration_counts: Sequence[int], repeats: int,
-                   quick: bool, with_compare: bool) -> dict[str, Any]:
+                   quick: bool, with_compare: bool, floors: Sequence[float]
+                   ) -> dict[str, Any]:
     """Every figure for one device, printing its tables as they come."""
     start = time.perf_counter()
     case = setup(device)
@@ -181,14 +209,33 @@ def measure_device(device: torch.device, iteration_counts: Sequence[int], repeat
             x, y = c["offset_mm"]
             print(f"{f'{x:g},{y:g}':>11} {c['pupil_mm']:>6g} {c['method']:>6} "
                   + " ".join(f"{c['psnr_db'][n]:>6.2f}" for n in COMPARE_SHOWN), flush=True)
+    lit = None
+    if floors:
+        lit = light_floors(case, floors, QUICK_QUALITY if quick else COMPARE_STATES)
+        print(f"\nPSNR after gain (dB) at the light at the eye (a share of the untracked "
+              f"display's), {DEFAULT_ITERATIONS} iterations, per light floor:")
+        print(f"{'eye x,y mm':>11} {'pupil':>6} {'untracked':>10} "
+              + " ".join(f"{f'floor {f:g}':>16}" for f in floors))
+        for row in lit:
+            x, y = row["offset_mm"]
+            print(f"{f'{x:g},{y:g}':>11} {row['pupil_mm']:>6g} {row['untracked_psnr_db']:>10.2f} "
+                  + " ".join(f"{f['psnr_db']:>8.2f} at {f['light_share']:>4.2f}"
+                             for f in row["floors"]), flush=True)
     return {"device": str(device), "setup_s": setup_s, "latency": rows, "quality": judged,
-            "compare": compared}
+            "compare": compared, "light_floors": lit}
 
 
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"{value} must be a whole number >= 1")
+    return value
+
+
+def _share(text: str) -> float:
+    value = float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"{value:g} must be a share from 0 to 1")
     return value
 
 
@@ -202,6 +249,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="solver iterations per frame to time")
     parser.add_argument("--compare", action="store_true",
                         help="also PSNR per iteration for MLEM and projected Adam")
+    parser.add_argument("--light-floors", type=_share, nargs="+", default=[], metavar="F",
+                        help="also PSNR and light at the eye per light floor (0 to 1)")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 1 and 2 iterations, one timed solve, two eye states")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
@@ -227,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     counts = list(QUICK_ITERATIONS) if args.quick else args.iterations
     repeats = 1 if args.quick else args.repeats
     results = [measure_device(device, counts, repeats, args.quick, args.compare and not
-                              args.quick) for device in devices]
+                              args.quick, args.light_floors) for device in devices]
     print(f"\nframe: keep_best=False (the last iterate); checked: keep_best=True (one more "
           f"forward pass). Goal {1000 * GOAL_FRAME_S:.0f} ms per frame (30 frames/s); x goal = "
           "frame / goal (below 1 meets it). Medians of the timed solves after a warm-up one.")

@@ -247,7 +247,8 @@ def test_bench_display_quick_runs_and_writes_its_figures(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bench = _load("bench_display")
     out = tmp_path / "display.json"
-    figures = bench.main(["--quick", "--device", "cpu", "--json", str(out)])
+    figures = bench.main(["--quick", "--device", "cpu", "--light-floors", "0", "1", "--json",
+                          str(out)])
     assert json.loads(out.read_text()) == json.loads(json.dumps(figures))
     text = capsys.readouterr().out
     assert "Goal 33 ms per frame" in text and "untracked" in text
@@ -264,6 +265,12 @@ def test_bench_display_quick_runs_and_writes_its_figures(
         # keep_best: the tracked display is never worse than the untracked one.
         assert row["tracked_psnr_db"] >= row["untracked_psnr_db"] > 0
     assert cpu["compare"] is None
+    assert len(cpu["light_floors"]) == len(bench.QUICK_QUALITY)
+    for row in cpu["light_floors"]:
+        free, held = row["floors"]
+        assert (free["light_floor"], held["light_floor"]) == (0, 1)
+        assert held["light_share"] >= 1 - 1e-4 and _positive(free["light_share"])  # float32
+        assert held["psnr_db"] >= row["untracked_psnr_db"]  # keep_best
 
 
 def test_bench_display_arguments() -> None:
@@ -272,6 +279,9 @@ def test_bench_display_arguments() -> None:
     assert args.iterations == [1, 3] and args.repeats == 2 and args.device == "all"
     with pytest.raises(SystemExit):
         bench.parse_args(["--iterations", "0"])
+    assert bench.parse_args(["--light-floors", "0", "0.5"]).light_floors == [0.0, 0.5]
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--light-floors", "1.5"])
 
 
 @pytest.mark.slow

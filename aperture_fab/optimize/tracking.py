@@ -59,8 +59,9 @@ light floor f (`light_floor`), each iterate instead takes the smallest scale k >
 which its light at the eye, sum(A^T 1 * min(k d, 1)), reaches f times the start's (A^T 1 is
 already at hand, and the view is linear in d, so no extra render is needed; k by bisection), and
 its brightest pixels saturate. The next iteration then corrects for what the saturation lost.
-Measured on the scene of the table above (same start, 5 iterations; PSNR after gain, the
-light at the eye as a share of the start's): no floor: (0, 0) 42.2 dB at 0.37, (1, 0) 42.0 at
+Measured on the scene of the table above (benchmarks/bench_display.py --light-floors 0 0.5 1;
+5 iterations; PSNR after gain, the light at the eye as a share of the start's): no floor:
+(0, 0) 42.2 dB at 0.36, (1, 0) 42.0 at
 0.29, (2, 0) 35.5 at 0.02, (1.5, 1.5) with 6 mm 29.8 at 0.21; floor 0.5: 42.2, 38.4, 33.0,
 28.7; floor 1: 31.7, 29.6, 26.6, 24.6 (starts: 22.2, 19.5, 16.2, 15.4 dB). Saturating only the
 final iterate instead lost 0.2 to 2.8 dB at floor 1, and blending the peak-1 result with the
