@@ -244,9 +244,10 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
     found: dict[int, MadeQuality] = {}
 
     def p10(index: int) -> float:
-        # Tracked content is darker than untracked (MLEM scales it to a peak of 1), so the
-        # climb may start below the part's light: a darker array scores below every bright
-        # one, by its light, and the climb walks toward larger holes until one is bright.
+        # Tracked content below a light floor of 1 is darker than untracked (MLEM scales it
+        # to a peak of 1), so the climb may start below the part's light: a darker array
+        # scores below every bright one, by its light, and the climb walks toward larger
+        # holes until one is bright.
         found[index] = judge(index)
         level = found[index].eye_level
         if level >= own.eye_level * (1 - 1e-9):

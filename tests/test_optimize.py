@@ -13,14 +13,17 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import interrupt_at_call
+from conftest import interrupt_at_call, tiny_config
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import aperture_fab.optimize.optimizer as optimize_module
 from aperture_fab.config.config import Config
+from aperture_fab.fabrication.part import made_optics
+from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.io.images import resample
 from aperture_fab.metrics import gain_mse, psnr_db
+from aperture_fab.optics.as_made import MadeOptics, draw_errors
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optimize.budget import OPTIMIZER_OVERSAMPLE
 from aperture_fab.optimize.optimizer import DivergedError, Interrupted, MaskDesign, optimize
@@ -514,6 +517,42 @@ def test_a_tracked_design_lowers_the_tracked_loss(make_config: MakeConfig) -> No
     assert tracked.loss_history[0] < untracked.loss_history[0]
     assert tracked.loss_history[-1] < tracked.loss_history[0]
     assert np.all((tracked.displays >= 0) & (tracked.displays <= 1))
+
+
+@pytest.mark.parametrize("floor", [0.0, 0.9])  # 0.9: the floor binds
+def test_the_tracked_loss_without_solves_is_the_untracked_loss_as_made(
+        monkeypatch: pytest.MonkeyPatch, floor: float) -> None:
+    """With no MLEM iteration each state's frame is the untracked content (scaled to a peak of
+    1, which the gain-corrected loss and the veil ignore), so the tracked loss, its plate
+    gradient and its display gradient are the untracked design loss's: the same made copy,
+    diffraction and veil, and the same light floor on the plate."""
+    monkeypatch.setattr(optimize_module, "TRACKED_SOLVE_ITERATIONS", 0)
+    config = tiny_config("near-eye")
+    scene = config.scene
+    renderer = Renderer(scene, dtype=torch.float64)
+    optics = made_optics(scene, resolve_process("photomask"))
+    rng = np.random.default_rng(5)
+    cells = (scene.plate.cells[1], scene.plate.cells[0])
+    draw = draw_errors(cells, MadeOptics(radius_sigma_mm=0.002, position_sigma_mm=0.003), rng)
+    states = optimize_module.training_states(scene, config.optimizer, 3)
+    targets = torch.as_tensor(rng.uniform(0, 1, (1, 3, *scene.eye.view_pixels[::-1])))
+    plate = torch.as_tensor(rng.uniform(0.05, 0.4, cells))
+    shown = torch.as_tensor(rng.uniform(0.1, 0.6, (1, 3, *scene.display.pixels[::-1])))
+    grads = []
+    for tracked_loss in (True, False):
+        a, display = plate.clone().requires_grad_(True), shown.clone().requires_grad_(True)
+        if tracked_loss:
+            loss = optimize_module._tracked_loss(renderer, a, display, targets, states, 0.5,
+                                                 optics, draw, floor)
+        else:
+            loss = optimize_module._design_loss(renderer, a, display, targets, states, 0.0, 0.5,
+                                                floor, optics, draw)
+        loss.backward()
+        grads.append((float(loss.detach()), a.grad, display.grad))
+    (tracked, a_tracked, d_tracked), (untracked, a_untracked, d_untracked) = grads
+    assert tracked == pytest.approx(untracked, rel=1e-9)
+    torch.testing.assert_close(a_tracked, a_untracked, rtol=1e-7, atol=1e-12)
+    torch.testing.assert_close(d_tracked, d_untracked, rtol=1e-7, atol=1e-12)
 
 
 def test_tracking_needs_an_optimized_display(make_config: MakeConfig) -> None:

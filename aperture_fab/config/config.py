@@ -478,13 +478,13 @@ def resolve(
     eye = _build(Eye, eye_args, layers)
     scene = _build(Scene, {"display": display, "plate": plate, "eye": eye}, layers)
     optimizer_args = _section(layers, "optimizer")
-    # A tracked design set above the layer that set a light floor drops the floor (a preset's
-    # floor holds one display's brightness; a tracked display changes per eye state).
-    for floor in ("min_efficiency", "min_eye_level"):
-        if (optimizer_args["tracking"] == "tracked"
-                and layers.sources[f"optimizer.{floor}"][0]
-                < layers.sources["optimizer.tracking"][0]):
-            optimizer_args[floor] = 0.0
+    # A tracked design set above the layer that set a floor on the light at the eye drops it
+    # (that floor holds one display's brightness; a tracked design's frames keep their warm
+    # start's instead).
+    if (optimizer_args["tracking"] == "tracked"
+            and layers.sources["optimizer.min_eye_level"][0]
+            < layers.sources["optimizer.tracking"][0]):
+        optimizer_args["min_eye_level"] = 0.0
     optimizer = _build(OptimizerSettings, optimizer_args, layers)
     fabrication, validation, photometry, outline = read_tables(layers.tables)
     return Config(preset=preset, scene=scene, optimizer=optimizer, fabrication=fabrication,

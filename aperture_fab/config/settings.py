@@ -85,7 +85,7 @@ class OptimizerSettings:
         edges of the eyebox rather than on average).
     tracking: "untracked" (one display content for every eye state: the device does not know
         where the eye is) or "tracked" (display content solved per eye state, as with an eye
-        tracker).
+        tracker, keeping the untracked content's light at the eye; docs/model.md).
     lattice: "rival" (default): when the part as made loses to the best regular pinhole array
         (`aperture_fab.validation.made_part`) and that array's pitch is coarser than the
         plate's cells, the design job designs again on the array's lattice (plate.pitch_mm and
@@ -155,11 +155,14 @@ class OptimizerSettings:
         for name, floor, what in (
                 ("min_efficiency", self.min_efficiency, "of the open display's light"),
                 ("min_eye_level", self.min_eye_level, "of the panel's white at the eye")):
-            if floor > 0 and self.tracking == "tracked":
+            # The plate's white efficiency does not depend on the content, so min_efficiency
+            # holds for a tracked design too; the content's light is the warm start's there.
+            if floor > 0 and self.tracking == "tracked" and name == "min_eye_level":
                 raise ValueError(
                     f"optimizer.{name} holds an untracked design's brightness; a tracked "
-                    "design's display content changes per eye state, so the floor is not "
-                    f'applied to it. Use tracking = "untracked" with a floor, or {name} = 0.')
+                    "design's frames keep the light of its untracked content instead "
+                    f'(tracking.DISPLAY_LIGHT_FLOOR). Use tracking = "untracked" with a floor, '
+                    f"or {name} = 0.")
             if not (math.isfinite(floor) and 0 <= floor < 1):
                 raise ValueError(
                     f"optimizer.{name} = {floor!r} is out of range; allowed: 0 <= floor < 1 "

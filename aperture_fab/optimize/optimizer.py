@@ -218,15 +218,22 @@ def _design_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
     weights = to_device(states.weight, renderer.dtype, renderer.device)
     loss = combine_states(per_state / targets.shape[0], weights, tail_share)
     if min_efficiency > 0:
-        white = made_white(light or renderer, a, states, draw)
-        efficiency = (white * weights).sum() / weights.sum()
-        short = torch.clamp(1 - efficiency / (FLOOR_AIM * min_efficiency), min=0)
-        loss = loss + FLOOR_WEIGHT * short**2
+        loss = loss + _efficiency_penalty(light or renderer, a, states, draw, min_efficiency)
     if min_eye_level > 0:
         loss = loss + FLOOR_WEIGHT * torch.clamp(1 - eye_level / min_eye_level, min=0) ** 2
         if seen is not None:
             seen["eye_level"] = float(eye_level.detach())
     return loss
+
+
+def _efficiency_penalty(light: Renderer, a: torch.Tensor, states: EyeStates,
+                        draw: MadeDraw | None, min_efficiency: float) -> torch.Tensor:
+    """FLOOR_WEIGHT x (1 - E / (FLOOR_AIM min_efficiency))^2 below the floor, 0 above it; E the
+    plate's light efficiency as the report judges it: the made copy's view of a uniform white
+    display, the states' weighted mean, rendered by `light`."""
+    weights = to_device(states.weight, light.dtype, light.device)
+    efficiency = (made_white(light, a, states, draw) * weights).sum() / weights.sum()
+    return FLOOR_WEIGHT * torch.clamp(1 - efficiency / (FLOOR_AIM * min_efficiency), min=0) ** 2
 
 
 def light_renderer(renderer: Renderer) -> Renderer:
@@ -259,29 +266,50 @@ def _hold_eye_floor(display: torch.Tensor, seen: dict[str, float], floor: float,
 
 
 def _tracked_loss(renderer: Renderer, a: torch.Tensor, displays: torch.Tensor,
-                  targets: torch.Tensor, states: EyeStates, tail_share: float) -> torch.Tensor:
+                  targets: torch.Tensor, states: EyeStates, tail_share: float,
+                  optics: MadeOptics | None = None, draw: MadeDraw | None = None,
+                  min_efficiency: float = 0.0, light: Renderer | None = None) -> torch.Tensor:
     """The loss of a tracked design (optimizer.tracking = "tracked"): each eye state sees the
-    display content solved for it (`aperture_fab.optimize.tracking.solve_display`,
-    TRACKED_SOLVE_ITERATIONS of MLEM warm-started from `displays`). No gradient flows through
-    the solve: at a solved display the loss is stationary in the display, so the plate's
-    gradient is the partial one (the envelope theorem; approximate, as a few iterations do
-    not reach the optimum). Its value is the tracked loss; its gradient moves the plate by the
-    tracked loss and the warm start `displays` by their own (untracked) loss, the plate held."""
-    from aperture_fab.optimize.tracking import solve_display  # tracking imports this module
+    display content solved for it as a device shows it (`aperture_fab.optimize.tracking.
+    solve_display`, TRACKED_SOLVE_ITERATIONS of MLEM warm-started from `displays`, holding
+    the warm start's light at the eye: tracking.DISPLAY_LIGHT_FLOOR), the solve seeing the
+    nominal plate and each view the made copy `draw` through `optics` (as `_design_loss`;
+    None: the geometric view). No gradient flows through the solve: at a solved display the
+    loss is stationary in the display, so the plate's gradient is the partial one (the
+    envelope theorem; approximate, as a few iterations do not reach the optimum). Its value is
+    the tracked loss plus `_design_loss`'s light floor on the plate (min_efficiency, rendered
+    by `light`); its gradient moves the plate by those and the warm start `displays` by their
+    own (untracked) loss, the plate held: the warm start is the untracked content, whose light
+    the frames keep."""
+    # tracking imports this module
+    from aperture_fab.optimize.tracking import DISPLAY_LIGHT_FLOOR, solve_display
 
     per_state = torch.zeros(len(states), dtype=renderer.dtype, device=renderer.device)
     for t in range(targets.shape[0]):
         solved = solve_display(renderer, a.detach(), targets[t], states, displays[t].detach(),
-                               TRACKED_SOLVE_ITERATIONS, keep_best=False).detach()
+                               TRACKED_SOLVE_ITERATIONS, keep_best=False,
+                               light_floor=DISPLAY_LIGHT_FLOOR).detach()
         views = torch.cat([
-            renderer.render_states(a, renderer.display_stack(solved[s]), states.subset([s]))
+            _views(renderer, a, solved[s], states.subset([s]), optics, draw)
             for s in range(len(states))
         ])
         per_state = per_state + gain_mse_states(views, targets[t])
     weights = to_device(states.weight, renderer.dtype, renderer.device)
-    tracked = combine_states(per_state / targets.shape[0], weights, tail_share)
-    warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share)
-    return tracked + (warm - warm.detach())
+    loss = combine_states(per_state / targets.shape[0], weights, tail_share)
+    warm = _design_loss(renderer, a.detach(), displays, targets, states, 0.0, tail_share,
+                        optics=optics, draw=draw)
+    if min_efficiency > 0:
+        loss = loss + _efficiency_penalty(light or renderer, a, states, draw, min_efficiency)
+    return loss + (warm - warm.detach())
+
+
+def _views(renderer: Renderer, a: torch.Tensor, display: torch.Tensor, states: EyeStates,
+           optics: MadeOptics | None, draw: MadeDraw | None) -> torch.Tensor:
+    """The views (S, C, ny, nx) of one display (C, H, W): as made through `optics` with the
+    copy `draw`, or the geometric view of the holes (optics None)."""
+    if optics is None:
+        return renderer.render_states(a, renderer.display_stack(display), states)
+    return made_views(renderer, a, display, states, optics, draw)[0]
 
 
 #: Stream of the made copies' random errors, apart from the eye states' (iteration_seed).
@@ -379,13 +407,13 @@ def optimize(
 
     def loss_fn(iteration: int) -> torch.Tensor:
         states = training_states(scene, settings, iteration)
-        if settings.tracking == "tracked" and display_param is not None:
-            return _tracked_loss(renderer, plate(iteration), display_param, target_t, states,
-                                 settings.tail_share)
-        displays = shown_t if display_param is None else display_param
         snapped = made is not None and iteration >= state["snap_from"]
         draw = made_draw(scene, settings, optics, iteration) if snapped else None
         floor = settings.min_efficiency if iteration >= floor_from else 0.0
+        if settings.tracking == "tracked" and display_param is not None:
+            return _tracked_loss(renderer, plate(iteration), display_param, target_t, states,
+                                 settings.tail_share, optics, draw, floor, light)
+        displays = shown_t if display_param is None else display_param
         return _design_loss(renderer, plate(iteration), displays, target_t, states,
                             settings.efficiency_weight, settings.tail_share, floor, optics,
                             draw, settings.min_eye_level, seen, light)
