@@ -188,6 +188,7 @@ def _measure_on(name: str, config: Config, args: argparse.Namespace) -> Judged:
         "eye_cd_m2": part["eye_level"] * panel_cd_m2, "panel_cd_m2": panel_cd_m2,
         "yield": tolerance["yield"], "design_s": seconds,
         "optimizer_db": optimizer_db, "judged_db": part["loss_psnr_db"][0],
+        "tracking": config.optimizer.tracking,
         "made_part": block,
     }
     best = block["regular"]["best"]
@@ -355,8 +356,11 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                  f"{row['margin_interval_db'][0]:+.2f} to {row['margin_interval_db'][1]:+.2f}; "
                  f"goal +{GOAL_MARGIN_DB:g})" if margin is not None else "")
               + f"; yield {row['yield']:.0%} (goal {GOAL_YIELD:.0%}); optimizer "
-              f"{row['optimizer_db']:.2f} against judged {row['judged_db']:.2f} dB (its loss; "
-              f"goal within {GOAL_AGREEMENT_DB:g}); design "
+              f"{row['optimizer_db']:.2f} against judged {row['judged_db']:.2f} dB ("
+              + ("its tracked loss against the untracked content's: not comparable"
+                 if row["tracking"] == "tracked" else
+                 f"its loss; goal within {GOAL_AGREEMENT_DB:g}")
+              + f"); design "
               f"{row['design_s']:.0f} s", flush=True)
         for tried in row.get("lattices", ()):
             print(f"  {'kept' if tried['kept'] else 'not kept'}: {tried['cells'][0]} x "
