@@ -47,6 +47,7 @@ from aperture_fab.optics.pair_table import Pairs, build_pairs, render_table
 from aperture_fab.optics.planes import EPS, Optics
 from aperture_fab.optics.scene import SUBPIXEL_CHANNELS, Scene
 from aperture_fab.optics.stack_filter import filter_levels, filter_levels_into
+from aperture_fab.optics.stack_levels import lowest_level
 
 __all__ = [
     "BACKENDS",
@@ -309,6 +310,11 @@ class Renderer:
         up to it, so a plate of holes much smaller than its cells (a regular array of small
         holes on a coarse lattice) renders from a far smaller stack; a larger hole reads the
         largest window (too sharp).
+    min_radius_mm: the smallest open hole radius it renders (made errors included); None:
+        any. Its display stacks filter only the levels such holes read (`stack_levels`): a
+        regular array's holes, all of one size, read a few of them. A smaller hole reads the
+        smallest level filtered (too wide a window). For eye states focused at infinity only
+        (`render_states` refuses others).
     """
 
     def __init__(
@@ -321,6 +327,7 @@ class Renderer:
         backend: Backend = "auto",
         oversample: int = STACK_OVERSAMPLE,
         max_radius_mm: float | None = None,
+        min_radius_mm: float | None = None,
     ) -> None:
         self.scene = scene
         self.hole_offset_mm = _checked_offsets(scene, hole_offset_mm)
@@ -335,6 +342,8 @@ class Renderer:
         self.oversample = oversample
         self.kernel_size, self.pad = shape.kernel_size, shape.pad
         self._fft_shape = (shape.fft_height, shape.fft_width)
+        self.first_level = 0 if min_radius_mm is None else lowest_level(
+            scene, shape.levels, shape.window_max_mm, min_radius_mm)
         self._filters: tuple[torch.Tensor, torch.Tensor | None] | None = None
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], Pairs] = {}
@@ -429,10 +438,11 @@ class Renderer:
             levels = torch.empty((*white.shape[:3], channels + 1), dtype=self.dtype,
                                  device=self.device)
             with torch.no_grad():
-                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape)
+                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape,
+                                   self.first_level)
             levels[..., channels:] = white
         else:
-            levels = filter_levels(d, kernel, self._fft_shape)
+            levels = filter_levels(d, kernel, self._fft_shape, self.first_level)
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
 
     def _window_spectra(self) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -442,26 +452,31 @@ class Renderer:
         stack: a renderer given its stacks (a tolerance sample's) never needs them."""
         if self._filters is None:
             shape, display = self.shape, self.scene.display
-            plain = self._spectra(_window_kernels(shape.pixel_mm, shape.box_mm, shape.radii_mm,
+            radii = shape.radii_mm[self.first_level:]  # the levels filtered
+            plain = self._spectra(_window_kernels(shape.pixel_mm, shape.box_mm, radii,
                                                   slack_mm=shape.slack_mm)[..., None])
             striped = None
             offsets_px = display.subpixel_offsets_px(SUBPIXEL_CHANNELS)
             if offsets_px is not None:
                 striped = self._spectra(np.stack(
-                    [_window_kernels(shape.pixel_mm, shape.box_mm, shape.radii_mm,
+                    [_window_kernels(shape.pixel_mm, shape.box_mm, radii,
                                      o * display.pixel_mm[0], shape.slack_mm)
                      for o in offsets_px], -1))
             self._filters = (plain, striped)
         return self._filters
 
     def _spectra(self, kernels: np.ndarray) -> torch.Tensor:
-        """Spectra (L, H, W', K) complex of window kernels (L, h, w, K) over the FFT shape,
-        each centred on sample 0 (wrapped around), so that it filters a display in place."""
+        """Spectra (L, H, W', K) complex of window kernels (L - first_level, h, w, K) of the
+        levels from first_level up, over the FFT shape, each centred on sample 0 (wrapped
+        around), so that it filters a display in place; the levels below are never filtered
+        (`stack_filter`) and are left zero."""
         k = torch.as_tensor(kernels, dtype=self.dtype, device=self.device)
         full = k.new_zeros((k.shape[0], *self._fft_shape, k.shape[-1]))
         full[:, :k.shape[1], :k.shape[2]] = k
         centre = (-(k.shape[1] // 2), -(k.shape[2] // 2))
-        return torch.fft.rfft2(torch.roll(full, centre, dims=(1, 2)), dim=(1, 2))
+        spectra = torch.fft.rfft2(torch.roll(full, centre, dims=(1, 2)), dim=(1, 2))
+        below = spectra.new_zeros((self.first_level, *spectra.shape[1:]))
+        return torch.cat([below, spectra]) if self.first_level else spectra
 
     def white_stack(self) -> torch.Tensor:
         """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a
@@ -497,6 +512,11 @@ class Renderer:
                 f"open_fraction has shape {tuple(open_fraction.shape)}; the plate has "
                 f"(rows, cols) = {cells}."
             )
+        if self.first_level > 0 and np.any(states.focus_diopters != 0):
+            raise ValueError(
+                f"eye states focused at {sorted(set(states.focus_diopters.tolist()))} diopters; "
+                "a renderer given min_radius_mm renders eye states focused at infinity (0) "
+                "only, whose lens areas bound its stack's levels. Give min_radius_mm=None.")
         a = open_fraction.to(self.device, self.dtype).reshape(-1).clamp_min(0)
         px, py = scene.plate.pitch_mm
         radius = (a * (px * py / math.pi)).add(EPS).sqrt()

@@ -539,6 +539,7 @@ def fit_display(
     optics: MadeOptics | None = None,
     oversample: int = OPTIMIZER_OVERSAMPLE,
     max_radius_mm: float | None = None,
+    min_radius_mm: float | None = None,
     progress: bool = False,
     on_iteration: Callable[[int, torch.Tensor], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -547,13 +548,14 @@ def fit_display(
     the loss history. Adam with the settings' learning rate and schedule, the same loss (with
     `optics`: the plate as made, one made copy drawn per iteration as in `optimize`), its
     display stack sampled `oversample` times per pixel (the optimizer's, by default), for holes
-    up to max_radius_mm (`Renderer`; None: the largest a cell holds).
+    from min_radius_mm up to max_radius_mm (`Renderer`; None: any, and the largest a cell
+    holds).
     on_iteration(n, displays): told the content after each iteration n (1 to iterations; a
     tensor the fit goes on changing: copy what you keep)."""
     device = resolve_device(settings.device)
     dtype = torch_dtype(settings.precision)
     renderer = Renderer(scene, device=device, dtype=dtype, oversample=oversample,
-                        max_radius_mm=max_radius_mm)
+                        max_radius_mm=max_radius_mm, min_radius_mm=min_radius_mm)
     a = torch.as_tensor(open_fraction, dtype=dtype, device=device)
     target_t = torch.as_tensor(targets, dtype=dtype, device=device)
     shown = torch.as_tensor(displays, dtype=dtype, device=device).clone().requires_grad_(True)

@@ -94,7 +94,7 @@ def made_part_block(scene: Scene, settings: OptimizerSettings, targets: np.ndarr
 
         fit_display(regular.scene, targets, regular.array.open_fraction, shown, settings,
                     fit_iterations, optics=regular.optics, max_radius_mm=regular.max_radius_mm,
-                    on_iteration=keep)
+                    min_radius_mm=regular.min_radius_mm, on_iteration=keep)
         return along
 
     # What a rival's fitted contents depend on besides the array and the targets: the settings

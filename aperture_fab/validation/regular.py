@@ -37,7 +37,7 @@ from aperture_fab.fabrication.quantize import MadeSizes, made_sizes
 from aperture_fab.optics.as_made import MadeOptics
 from aperture_fab.optics.baselines import PinholeArray, elemental_display
 from aperture_fab.optics.diffraction import airy_mixture
-from aperture_fab.optics.eyes import EyeStates
+from aperture_fab.optics.eyes import EyeStates, distribution_of
 from aperture_fab.optics.model import Renderer
 from aperture_fab.optics.scene import Scene, hole_radius_mm, open_fraction_of
 from aperture_fab.validation.judged_cache import JudgedCache, digest
@@ -96,6 +96,17 @@ class RegularArray:
         0.4 mm hole on 2.5 mm cells: 6 levels instead of 24)."""
         radius = self.array.diameter_mm / 2 + RADIUS_SIGMAS * self.optics.radius_sigma_mm
         return min(radius, self.scene.plate.max_radius_mm)
+
+    @property
+    def min_radius_mm(self) -> float | None:
+        """The smallest hole radius a made copy has, to render it with (`Renderer`): the made
+        radius less RADIUS_SIGMAS of the process's radius error; None (any) when that is not
+        above 0 or the eye distribution focuses off infinity. The stack then filters only the
+        levels holes of that size read (a 2.26 mm hole on 3 mm cells: 6 of 24)."""
+        radius = self.array.diameter_mm / 2 - RADIUS_SIGMAS * self.optics.radius_sigma_mm
+        if radius <= 0 or distribution_of(self.scene.eye).focus_range_diopters != (0.0, 0.0):
+            return None
+        return radius
 
 
 def family_outline_mm(scene: Scene) -> tuple[float, float]:
@@ -301,7 +312,8 @@ def regular_front(targets: np.ndarray, arrays: Sequence[RegularArray], states: E
         if judged is None:
             if fit is not None:
                 renderer = Renderer(regular.scene, device=device, dtype=dtype,
-                                    max_radius_mm=regular.max_radius_mm)
+                                    max_radius_mm=regular.max_radius_mm,
+                                    min_radius_mm=regular.min_radius_mm)
                 judged = [judge_made(renderer, targets, a, shown, regular.optics, states, copies,
                                      seed)
                           for shown in fit(regular, elemental(regular, target_t))]
