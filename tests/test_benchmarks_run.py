@@ -389,6 +389,7 @@ def test_bench_rival_fit_quick(tmp_path: Path) -> None:
 def test_bench_stack_quick() -> None:
     """The display stack's forward and backward times, as printed; an unknown pitch refused."""
     figures = _load("bench_stack").main(["--quick"])
-    assert _positive(figures["forward_ms"]) and _positive(figures["backward_ms"])
+    for name in ("forward_ms", "backward_ms", "all_levels_forward_ms", "all_levels_backward_ms"):
+        assert _positive(figures[name])
     with pytest.raises(SystemExit, match="no such lattice pitch"):
         _load("bench_stack").main(["--pitch-mm", "0.3"])

@@ -197,3 +197,23 @@ def test_the_kernels_compile_for_a_hopper_gpu(stack, shared, optics, tmp_path):
     done = subprocess.run([sys.executable, "-c", COMPILE, stack, shared, optics], env=env,
                           capture_output=True, text=True, timeout=600, check=False)
     assert done.returncode == 0 and "compiled" in done.stdout, done.stderr[-3000:]
+
+
+@pytest.mark.parametrize("plate", [{}, {"thickness": 0.03, "axis": "chief_ray"}])
+def test_gpu_kernels_read_a_stack_of_the_upper_levels(plate):
+    """A renderer for holes of at least min_radius_mm (`Renderer`): its stack holds only the
+    upper levels, which the kernels reach through the level offset; the CPU kernels' views and
+    gradients, holes from that size up on a display fine enough for several levels."""
+    scene = make_scene(**{**SMALL, "pixels": (160, 160)}, **plate)
+    rng = np.random.default_rng(5)
+    a = np.pi * rng.uniform(0.1, 0.12, (8, 8)) ** 2 / 0.0625  # 0.25 mm cells
+    display = rng.random((3, 160, 160))
+    batch = states(*BATCHES["infinity"])
+    weight = rng.random((len(batch), 3, 8, 8))
+    got, want = (views_and_grads(Renderer(scene, device=where, dtype=torch.float64,
+                                          backend=backend, max_radius_mm=0.12,
+                                          min_radius_mm=0.1), a, display, batch, weight)
+                 for where, backend in ((DEVICE, "triton"), ("cpu", "kernel")))
+    assert Renderer(scene, max_radius_mm=0.12, min_radius_mm=0.1).first_level > 0
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g.cpu(), w, rtol=1e-9, atol=1e-9 * float(w.abs().max()))

@@ -283,11 +283,14 @@ def test_the_shared_geometry_loop_is_pair_geometry(seed, chief, tilt):
     """The kernels' SIMD loop over shared pairs (`kernels._fill` through `_shared_geometry`,
     every branch a selection) gives `pair_geometry`'s values for every pair: holes of any size
     (disks that miss each other at a steep view, levels clamped at both ends), displaced or
-    not, chief-ray axes or not."""
+    not, chief-ray axes or not, in a whole stack or one of its upper levels (a level
+    offset)."""
     rng = np.random.default_rng(seed)
     cells = 9
+    offset = rng.uniform(0.0, 1.5) * rng.integers(0, 2)
     geometry = np.array([cells, cells, 0.5, 0.5, rng.uniform(0.2, 0.5), float(chief), 0.3, -0.2,
-                         10.0, 10.0, 9.8, 20.0, 10.0, 10.0, 0.05, 0.05, 8.0, 0.0, 1.5, 0.0])
+                         10.0, 10.0, 9.8, 20.0, 10.0, 10.0, 0.05, 0.05, 8.0, 0.0, 1.5, 0.0,
+                         offset])
     assert len(geometry) == len(kernels.GEOMETRY_FIELDS)
     radius = rng.uniform(1e-6, 0.25, cells * cells)
     offsets = rng.normal(0.0, 0.01, (cells * cells, 2)) * rng.integers(0, 2)

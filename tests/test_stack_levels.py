@@ -1,6 +1,6 @@
 """A display stack for holes of a known smallest size (`Renderer`'s min_radius_mm,
-`optics.stack_levels`, `stack_filter`'s `first`): the levels such holes read are the levels
-of the stack filtered in full, so their views and gradients are the same."""
+`optics.stack_levels`): it holds only the levels such holes read, and the kernels' level
+offset maps their windows onto them, so their views and gradients are the whole stack's."""
 
 from __future__ import annotations
 
@@ -12,12 +12,10 @@ import pytest
 import torch
 from conftest import tiny_config
 from test_model import make_scene
-from test_stack_filter import case, reference_levels
 
 from aperture_fab.fabrication.process import resolve_process
 from aperture_fab.optics.eyes import EyeStates
 from aperture_fab.optics.model import Renderer
-from aperture_fab.optics.stack_filter import filter_levels, filter_levels_into
 from aperture_fab.optics.stack_levels import lens_area_mm2
 from aperture_fab.validation.regular import RADIUS_SIGMAS, regular_arrays
 
@@ -26,36 +24,6 @@ from aperture_fab.validation.regular import RADIUS_SIGMAS, regular_arrays
     (0.0, 1.0), (1.0, (2 * math.pi / 3 - math.sqrt(3) / 2) / math.pi), (2.0, 0.0), (3.0, 0.0)])
 def test_the_lens_area_of_two_unit_disks(distance: float, share: float) -> None:
     assert lens_area_mm2(1.0, distance) == pytest.approx(math.pi * share, abs=1e-12)
-
-
-@pytest.mark.parametrize("first", [1, 2])
-def test_levels_below_first_are_its_level_forward_and_backward(first: int) -> None:
-    """As if every kernel below `first` were its kernel: the same levels as the plain ops
-    through such a bank, and the gradient of those ops (float64)."""
-    padded, kernels, fft_shape = case(first, 3, 1, torch.float64)
-    bank = kernels.clone()
-    bank[:first] = kernels[first]
-    mine = padded.clone().requires_grad_(True)
-    theirs = padded.clone().requires_grad_(True)
-    got = filter_levels(mine, kernels, fft_shape, first)
-    want = reference_levels(theirs, bank, fft_shape)
-    assert torch.equal(got, want)
-    weights = torch.rand(got.shape, generator=torch.Generator().manual_seed(first),
-                         dtype=torch.float64)
-    (got * weights).sum().backward()
-    (want * weights).sum().backward()
-    assert mine.grad is not None and theirs.grad is not None
-    torch.testing.assert_close(mine.grad, theirs.grad, rtol=1e-12, atol=1e-12)
-    assert torch.autograd.gradcheck(lambda p: filter_levels(p, kernels, fft_shape, first),
-                                    (padded.clone().requires_grad_(True),))
-
-
-@pytest.mark.parametrize("first", [-1, 3])
-def test_a_first_level_outside_the_stack_is_refused(first: int) -> None:
-    padded, kernels, fft_shape = case(0, 3, 1, torch.float64)
-    out = torch.empty((kernels.shape[0], *padded.shape[1:], 3), dtype=torch.float64)
-    with pytest.raises(ValueError, match="first = "):
-        filter_levels_into(out, padded, kernels, fft_shape, first)
 
 
 def _states(offsets: list[tuple[float, float]], pupils: list[float],
@@ -72,10 +40,11 @@ def test_holes_at_least_min_radius_render_as_from_the_whole_stack(
         backend: str, axis: str, thickness: float) -> None:
     """Random holes from min_radius_mm to max_radius_mm, moved off their cells, eye states
     across an eyebox and pupil sizes, on plates thin and thick (lenses that shrink): the
-    views and both gradients equal the whole stack's, and the stack skipped levels: to the
-    last bits through the fused kernels (the kernels' spectra are transformed in batches of
-    another size), to 1e-10 through the torch path, which pads its pair tables with closed
-    cells of about 1e-12 mm^2 (`render_table`) that read the lowest levels."""
+    views and both gradients equal the whole stack's, from fewer levels: to the last bits
+    through the fused kernels (the kernels' spectra are transformed in batches of another
+    size, and the level coordinate goes through another scale and an offset), to 1e-10
+    through the torch path, which pads its pair tables with closed cells of about 1e-12 mm^2
+    (`render_table`) that read the lowest level held."""
     scene = make_scene(cells=(6, 6), pitch=1.0, thickness=thickness, axis=axis,
                        pixels=(120, 120), size=12.0, view=(24, 24))
     if thickness == 0.3 and axis == "straight":  # display optics and RGB stripes too
@@ -98,7 +67,9 @@ def test_holes_at_least_min_radius_render_as_from_the_whole_stack(
                             min_radius_mm=smallest)
         shown = display.clone().requires_grad_(True)
         fraction = torch.as_tensor(a).requires_grad_(True)
-        views = renderer.render_states(fraction, renderer.display_stack(shown), states)
+        stack = renderer.display_stack(shown)
+        assert stack.shape[2] == renderer.shape.levels - renderer.first_level
+        views = renderer.render_states(fraction, stack, states)
         (views * weights).sum().backward()
         results.append((renderer.first_level, views.detach(), shown.grad, fraction.grad))
     (whole, *full), (first, *pruned) = results

@@ -136,9 +136,10 @@ def _share(pupil_b, lens_r, po):
 
 
 @triton.jit
-def _level(level_scale, area, darea):
-    """Stack level coordinate in [-1, 1] of a window of `area`, and d / d r."""
-    level = 2.0 * level_scale * area - 1.0
+def _level(level_scale, offset, area, darea):
+    """Stack level coordinate in [-1, 1] of a window of `area` (the stack's lowest level
+    `offset` above a window of no area's), and d / d r."""
+    level = 2.0 * level_scale * area - 1.0 - offset
     inside = (level < 1.0) & (level > -1.0)
     return tl.minimum(tl.maximum(level, -1.0), 1.0), tl.where(inside, 2.0 * level_scale * darea,
                                                               0.0)
@@ -198,7 +199,7 @@ def _pair(geom_ptr, r, hx, hy, ax, ay, vx, vy, cx, cy, m, mu, level_scale,
         wx, wy, emission = _display_optics(geom_ptr, wx, wy, sx, sy)
     col = (wx + tl.load(geom_ptr + 12)) / tl.load(geom_ptr + 14) - 0.5 + tl.load(geom_ptr + 16)
     row = (tl.load(geom_ptr + 13) - wy) / tl.load(geom_ptr + 15) - 0.5 + tl.load(geom_ptr + 16)
-    level, dlevel = _level(level_scale, area, darea)
+    level, dlevel = _level(level_scale, tl.load(geom_ptr + 20), area, darea)
     lens_r = tl.sqrt(tl.maximum(area / _PI, _EPS))
     return bx, by, lx, ly, area, darea, lens_r, col, row, level, dlevel, emission
 

@@ -122,9 +122,10 @@ def pupil_share(pupil_bottom, lens_r, po):
 
 
 @inline_jit
-def _level(level_scale, area, darea):
-    """Stack level coordinate in [-1, 1] of a window of `area` (times mu^2), and d / d r."""
-    level = 2.0 * level_scale * area - 1.0
+def _level(level_scale, offset, area, darea):
+    """Stack level coordinate in [-1, 1] of a window of `area` (times mu^2) in a stack whose
+    lowest level sits `offset` above the level of a window of no area, and d / d r."""
+    level = 2.0 * level_scale * area - 1.0 - offset
     if level >= 1.0:
         return 1.0, 0.0
     if level <= -1.0:
@@ -210,7 +211,7 @@ def pair_geometry(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
         if geometry[17] > 0.0 or geometry[19] > 0.0:
             wx, wy, emission = _display_optics(geometry, wx, wy, vx, vy)
         col, row = _pixel(geometry, wx, wy)
-        level, dlevel = _level(states[0, 5], area, darea)
+        level, dlevel = _level(states[0, 5], geometry[20], area, darea)
         return bx, by, lx, ly, area, darea, col, row, level, dlevel, emission
     cx = states[s, 0]
     cy = states[s, 1]
@@ -231,7 +232,7 @@ def pair_geometry(radius, geometry, offsets, states, s, vx, vy, i, j, shared):
         gap = geometry[11] - geometry[9]
         wx, wy, emission = _display_optics(geometry, wx, wy, (wx - lx) / gap, (wy - ly) / gap)
     col, row = _pixel(geometry, wx, wy)
-    level, dlevel = _level(states[s, 5], area, darea)
+    level, dlevel = _level(states[s, 5], geometry[20], area, darea)
     return bx, by, lx, ly, area, darea, col, row, level, dlevel, emission
 
 

@@ -25,10 +25,12 @@ plate's bottom face (mm), top-to-bottom scale m, window scale mu, level scale (m
 w the stack's largest window radius), 1 / (pi R_b^2), and the distance from the footprint
 centre within which a hole's bottom disk must lie, R_b + 2 r_max (mm); `extra` widens the hole
 search by the chief-ray tilt and the largest hole displacement.
-`geometry` holds the scene's constants in the order of GEOMETRY_FIELDS; its last three are the
-display-side optics (cover glass thickness and index, emission exponent k; 0 thickness and 0 k:
-off, and then nothing changes): the glass moves a pair's window by its refraction shift, the
-falloff weighs its sample by cos^k, both at the pair's chief ray (docs/model.md).
+`geometry` holds the scene's constants in the order of GEOMETRY_FIELDS; fields 17 to 19 are
+the display-side optics (cover glass thickness and index, emission exponent k; 0 thickness and
+0 k: off, and then nothing changes): the glass moves a pair's window by its refraction shift,
+the falloff weighs its sample by cos^k, both at the pair's chief ray (docs/model.md). The last
+is the level offset of a stack that holds only its upper levels (`Renderer`'s min_radius_mm):
+a window's level coordinate is 2 (level scale) area - 1 - offset, clamped to [-1, 1].
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ from aperture_fab.optics.kernel_stack import (
 
 #: kernel_pair.py's and kernel_stack.py's digest: these kernels inline their functions, and
 #: Numba's cache does not see a change there (`aperture_fab.kernel_sources`).
-INLINED_DIGEST = "c43520c8afb2b0cf"
+INLINED_DIGEST = "6acff65a9ceb675b"
 check_inlined(__name__, INLINED_DIGEST, kernel_pair, kernel_stack)
 
 __all__ = [
@@ -78,7 +80,7 @@ __all__ = [
 GEOMETRY_FIELDS = (
     "cells_x", "cells_y", "pitch_x", "pitch_y", "thickness", "chief_ray", "eye_x", "eye_y",
     "axis_length", "s_bottom", "s_top", "s_display", "half_width", "half_height",
-    "pixel_x", "pixel_y", "pad", "cover_glass", "glass_index", "emission_power",
+    "pixel_x", "pixel_y", "pad", "cover_glass", "glass_index", "emission_power", "level_offset",
 )
 STATE_FIELDS = ("cx", "cy", "pupil_bottom", "top_scale", "window_scale", "level_scale", "norm",
                 "keep")
@@ -406,6 +408,7 @@ def _shared_geometry(inputs, filled, geometry, level_scale, v_x, v_y, geo):
     pixel_x = geometry[14]
     pixel_y = geometry[15]
     pad = geometry[16]
+    offset = geometry[20]
     for p in range(filled):
         hx = inputs[0, p]
         hy = inputs[1, p]
@@ -432,7 +435,7 @@ def _shared_geometry(inputs, filled, geometry, level_scale, v_x, v_y, geo):
         lx = bx + dx / 2
         ly = by + dy / 2
         # _level
-        level = 2.0 * level_scale * area - 1.0
+        level = 2.0 * level_scale * area - 1.0 - offset
         inside = (level > -1.0) & (level < 1.0)
         # The stores are `_fill`'s written out: through a helper taking the pair as a tuple,
         # LLVM did not vectorize this loop (forward 98.6 against 80.1 ms).

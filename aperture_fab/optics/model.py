@@ -311,10 +311,10 @@ class Renderer:
         holes on a coarse lattice) renders from a far smaller stack; a larger hole reads the
         largest window (too sharp).
     min_radius_mm: the smallest open hole radius it renders (made errors included); None:
-        any. Its display stacks filter only the levels such holes read (`stack_levels`): a
-        regular array's holes, all of one size, read a few of them. A smaller hole reads the
-        smallest level filtered (too wide a window). For eye states focused at infinity only
-        (`render_states` refuses others).
+        any. Its display stacks hold only the levels such holes read, from `first_level` up
+        (`stack_levels`): a regular array's holes, all of one size, read a few of them. A
+        smaller hole reads the lowest level held (too wide a window). For eye states focused
+        at infinity only (`render_states` refuses others).
     """
 
     def __init__(
@@ -344,6 +344,10 @@ class Renderer:
         self._fft_shape = (shape.fft_height, shape.fft_width)
         self.first_level = 0 if min_radius_mm is None else lowest_level(
             scene, shape.levels, shape.window_max_mm, min_radius_mm)
+        # A stack of the upper levels only: the kernels map a window's area onto its levels
+        # by a level scale stretched to them and this offset (kernels.GEOMETRY_FIELDS).
+        self.stack_levels = shape.levels - self.first_level
+        self.level_offset = 2 * self.first_level / (self.stack_levels - 1)
         self._filters: tuple[torch.Tensor, torch.Tensor | None] | None = None
         self.pupil_bottom_mm = eye.pupil_mm / 2 * abs(opt.beta_bottom)
         self._pairs: dict[tuple[float, ...], Pairs] = {}
@@ -406,8 +410,10 @@ class Renderer:
             opt = Optics.of(scene, diopters / 1000.0)
             pupil_b = pupil / 2 * abs(opt.beta_bottom)
             mu = opt.window_scale
-            rows.append((cx, cy, pupil_b, opt.top_to_bottom, mu,
-                         mu * mu / math.pi / max(self.window_max_mm**2, EPS),
+            level_scale = mu * mu / math.pi / max(self.window_max_mm**2, EPS)
+            if self.first_level:
+                level_scale *= (self.shape.levels - 1) / (self.stack_levels - 1)
+            rows.append((cx, cy, pupil_b, opt.top_to_bottom, mu, level_scale,
                          1 / (math.pi * pupil_b**2), pupil_b + 2 * scene.plate.max_radius_mm))
         return np.asarray(rows, dtype=np.float64).reshape(-1, len(STATE_FIELDS))
 
@@ -419,7 +425,8 @@ class Renderer:
     # -- display ------------------------------------------------------------------------------
 
     def display_stack(self, display: torch.Tensor, with_white: bool = False) -> torch.Tensor:
-        """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W'). A striped
+        """Pre-filter a display (C, H, W) into the window stack (1, C, L, H', W'), its levels
+        from first_level up (L = stack_levels; min_radius_mm in the class docstring). A striped
         RGB display (`Display.subpixels`) filters each channel with its stripe's offset.
         with_white: the uniform white display's stack (`white_stack`) joined as channel C
         (what `as_made.made_views_and_white` renders), each level written beside it rather
@@ -438,11 +445,10 @@ class Renderer:
             levels = torch.empty((*white.shape[:3], channels + 1), dtype=self.dtype,
                                  device=self.device)
             with torch.no_grad():
-                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape,
-                                   self.first_level)
+                filter_levels_into(levels[..., :channels], d, kernel, self._fft_shape)
             levels[..., channels:] = white
         else:
-            levels = filter_levels(d, kernel, self._fft_shape, self.first_level)
+            levels = filter_levels(d, kernel, self._fft_shape)
         return levels.permute(3, 0, 1, 2).unsqueeze(0)  # (L, H, W, C) in memory
 
     def _window_spectra(self) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -452,7 +458,7 @@ class Renderer:
         stack: a renderer given its stacks (a tolerance sample's) never needs them."""
         if self._filters is None:
             shape, display = self.shape, self.scene.display
-            radii = shape.radii_mm[self.first_level:]  # the levels filtered
+            radii = shape.radii_mm[self.first_level:]  # the levels held
             plain = self._spectra(_window_kernels(shape.pixel_mm, shape.box_mm, radii,
                                                   slack_mm=shape.slack_mm)[..., None])
             striped = None
@@ -466,17 +472,13 @@ class Renderer:
         return self._filters
 
     def _spectra(self, kernels: np.ndarray) -> torch.Tensor:
-        """Spectra (L, H, W', K) complex of window kernels (L - first_level, h, w, K) of the
-        levels from first_level up, over the FFT shape, each centred on sample 0 (wrapped
-        around), so that it filters a display in place; the levels below are never filtered
-        (`stack_filter`) and are left zero."""
+        """Spectra (L, H, W', K) complex of window kernels (L, h, w, K) over the FFT shape,
+        each centred on sample 0 (wrapped around), so that it filters a display in place."""
         k = torch.as_tensor(kernels, dtype=self.dtype, device=self.device)
         full = k.new_zeros((k.shape[0], *self._fft_shape, k.shape[-1]))
         full[:, :k.shape[1], :k.shape[2]] = k
         centre = (-(k.shape[1] // 2), -(k.shape[2] // 2))
-        spectra = torch.fft.rfft2(torch.roll(full, centre, dims=(1, 2)), dim=(1, 2))
-        below = spectra.new_zeros((self.first_level, *spectra.shape[1:]))
-        return torch.cat([below, spectra]) if self.first_level else spectra
+        return torch.fft.rfft2(torch.roll(full, centre, dims=(1, 2)), dim=(1, 2))
 
     def white_stack(self) -> torch.Tensor:
         """The stack (1, 1, L, H', W') of a uniform white one-channel display, built once (a
@@ -555,6 +557,7 @@ class Renderer:
             scene.display_distance_mm, display.width_mm / 2, display.height_mm / 2,
             self.shape.pixel_mm[0], self.shape.pixel_mm[1], self.pad,
             display.cover_glass_mm, display.cover_glass_index, display.emission_power,
+            self.level_offset,
         ], dtype=np.float64)
 
 

@@ -43,7 +43,8 @@ class PairWeights(torch.autograd.Function):
     backward, because this runs on millions of pairs per view."""
 
     @staticmethod
-    def forward(ctx, radius, hole, lens_offset, pupil_offset, top_scale, pupil_r, level_scale):
+    def forward(ctx, radius, hole, lens_offset, pupil_offset, top_scale, pupil_r, level_scale,
+                level_offset):
         r1 = radius[hole]
         d = lens_offset
         if top_scale == 1.0:
@@ -78,7 +79,7 @@ class PairWeights(torch.autograd.Function):
         share = torch.where(cut, 0.5 + (torch.asin(xs) + xs * root) / math.pi, (x >= 1).to(x.dtype))
         norm = 1 / (math.pi * pupil_r**2)
         weight = area * share * norm
-        level = (2 * level_scale * area - 1).clamp(-1, 1)
+        level = (2 * level_scale * area - 1 - level_offset).clamp(-1, 1)
         ctx.save_for_backward(hole, darea * (share - xs * root / math.pi) * norm,
                               darea * (2 * level_scale) * (level.abs() < 1))
         ctx.cells = radius.shape[0]
@@ -90,7 +91,7 @@ class PairWeights(torch.autograd.Function):
         grad_r = grad_weight * dweight + grad_level * dlevel
         grad_radius = torch.zeros(ctx.cells, dtype=grad_r.dtype, device=grad_r.device)
         grad_radius.index_add_(0, hole.reshape(-1), grad_r.reshape(-1))
-        return grad_radius, None, None, None, None, None, None
+        return grad_radius, None, None, None, None, None, None, None
 
 
 def render_table(renderer: Renderer, radius: torch.Tensor, stack: torch.Tensor, row: np.ndarray
@@ -103,7 +104,7 @@ def render_table(renderer: Renderer, radius: torch.Tensor, stack: torch.Tensor, 
         sl = slice(start, start + rows_per_chunk)
         weight, level = PairWeights.apply(
             radius, pairs.hole[sl], pairs.lens_offset_mm[sl], pairs.pupil_offset_mm[sl],
-            abs(float(row[3])), float(row[2]), float(row[5]))
+            abs(float(row[3])), float(row[2]), float(row[5]), renderer.level_offset)
         grid = torch.cat([pairs.grid_xy[sl], level.unsqueeze(-1)], dim=-1)[None, None]
         samples = F.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
                                 align_corners=True)[0, :, 0]  # (C, n, S)

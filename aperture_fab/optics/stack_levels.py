@@ -1,5 +1,6 @@
 """Which display stack levels holes of a known smallest size can read: the lowest level a
-renderer for them must filter (`Renderer`'s min_radius_mm, `stack_filter`'s `first`).
+renderer for them must hold (`Renderer`'s min_radius_mm; the kernels reach the levels held
+through a level offset, `kernels.GEOMETRY_FIELDS`).
 
 A pair (view direction v, hole of radius r) reads the stack at the level of its lens: the
 overlap of the hole's two faces seen along v, in the kernels' shared case (every eye state
@@ -35,8 +36,8 @@ def lens_area_mm2(radius_mm: float, distance_mm: float) -> float:
 def lowest_level(scene: Scene, levels: int, window_max_mm: float, min_radius_mm: float) -> int:
     """The lowest level (0 to levels - 2) of a stack of `levels` up to window_max_mm that a
     hole of radius at least min_radius_mm (mm, > 0) reads for an eye focused at infinity,
-    less MARGIN_LEVELS: every level below it is read only by smaller holes (or closed ones,
-    whose light is 0)."""
+    less MARGIN_LEVELS: every level below it is read only by smaller holes (or by closed
+    ones, whose light is 0)."""
     if not (math.isfinite(min_radius_mm) and min_radius_mm > 0):
         raise ValueError(f"min_radius_mm = {min_radius_mm!r}; allowed: above 0 (mm), or None "
                          "for a renderer of holes of any size.")
