@@ -231,13 +231,15 @@ def tracked_block(part: Judged, args: argparse.Namespace) -> dict[str, Any]:
 
     def judge(index: int, judged_states: EyeStates = search, copies: int = 1) -> MadeQuality:
         regular = arrays[index]
-        renderer = Renderer(regular.scene, max_radius_mm=regular.max_radius_mm)
+        renderer = Renderer(regular.scene, max_radius_mm=regular.max_radius_mm,
+                            min_radius_mm=regular.min_radius_mm)
         if index not in starts:
             starts[index], _ = fit_display(regular.scene, part.targets,
                                            regular.array.open_fraction,
                                            elemental(regular, target_t), settings,
                                            args.fit_iterations, optics=regular.optics,
-                                           max_radius_mm=regular.max_radius_mm)
+                                           max_radius_mm=regular.max_radius_mm,
+                                           min_radius_mm=regular.min_radius_mm)
         return judge_tracked(renderer, part.targets, regular.array.open_fraction,
                              starts[index], regular.optics, judged_states, copies,
                              iterations=args.tracked, light_floor=args.tracked_light)

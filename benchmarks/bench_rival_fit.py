@@ -75,7 +75,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                 ) -> list[np.ndarray]:
             return [fit_display(regular.scene, targets, regular.array.open_fraction, shown,
                                 settings, n, optics=regular.optics,
-                                max_radius_mm=regular.max_radius_mm)[0]]
+                                max_radius_mm=regular.max_radius_mm,
+                                min_radius_mm=regular.min_radius_mm)[0]]
 
         front = regular_front(targets, [rival], states, args.copies,
                               fit=fit if iterations > 0 else None)

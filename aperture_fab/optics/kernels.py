@@ -22,7 +22,8 @@ the stack is read in its own dtype; sums are kept in float64.
 Layouts: the stack is (L, H, W, C) (channels last, so a tap reads C adjacent values); views are
 (S, C, ny, nx). `states` rows hold, per eye state: pupil-centre x, y (mm), pupil radius at the
 plate's bottom face (mm), top-to-bottom scale m, window scale mu, level scale (mu^2 / pi / w^2,
-w the stack's largest window radius), 1 / (pi R_b^2), and the distance from the footprint
+w the stack's largest window radius; times (L - 1) / (L' - 1) for a stack that holds the upper
+L' of its L levels), 1 / (pi R_b^2), and the distance from the footprint
 centre within which a hole's bottom disk must lie, R_b + 2 r_max (mm); `extra` widens the hole
 search by the chief-ray tilt and the largest hole displacement.
 `geometry` holds the scene's constants in the order of GEOMETRY_FIELDS; fields 17 to 19 are
