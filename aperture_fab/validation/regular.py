@@ -101,8 +101,8 @@ class RegularArray:
     def min_radius_mm(self) -> float | None:
         """The smallest hole radius a made copy has, to render it with (`Renderer`): the made
         radius less RADIUS_SIGMAS of the process's radius error; None (any) when that is not
-        above 0 or the eye distribution focuses off infinity. The stack then filters only the
-        levels holes of that size read (a 2.26 mm hole on 3 mm cells: 6 of 24)."""
+        above 0 or the eye distribution focuses off infinity. The stack then holds only the
+        levels holes of that size read (a 2.26 mm hole on 3 mm cells: 3 of 24)."""
         radius = self.array.diameter_mm / 2 - RADIUS_SIGMAS * self.optics.radius_sigma_mm
         if radius <= 0 or distribution_of(self.scene.eye).focus_range_diopters != (0.0, 0.0):
             return None
